@@ -1,0 +1,83 @@
+//! Errors of volux-envmap. Every variant names where the bad data came from (a file path, or
+//! "in-memory map") and what is wrong with it.
+
+use std::path::PathBuf;
+
+/// What went wrong reading, validating, writing or convolving an environment map.
+#[derive(Debug, thiserror::Error)]
+pub enum EnvMapError {
+    /// The file could not be opened, read or written.
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The file extension is not one we read or write.
+    #[error(
+        "{}: unsupported file type (expected .exr, .hdr, .png, .jpg or .jpeg)",
+        path.display()
+    )]
+    UnsupportedFormat { path: PathBuf },
+    /// The decoder rejected the file (truncated, corrupt, or a variant it does not support).
+    #[error("{}: cannot decode {format} image: {message}", path.display())]
+    Decode {
+        path: PathBuf,
+        format: &'static str,
+        message: String,
+    },
+    /// The encoder failed.
+    #[error("{}: cannot encode {format} image: {message}", path.display())]
+    Encode {
+        path: PathBuf,
+        format: &'static str,
+        message: String,
+    },
+    /// The image has no texels.
+    #[error("{origin}: empty image ({width}x{height})")]
+    Empty {
+        origin: String,
+        width: usize,
+        height: usize,
+    },
+    /// Equirectangular maps are twice as wide as they are tall.
+    #[error(
+        "{origin}: {width}x{height} is not an equirectangular map (width must be exactly 2 x height)"
+    )]
+    AspectRatio {
+        origin: String,
+        width: usize,
+        height: usize,
+    },
+    /// The buffer does not hold width x height RGB texels.
+    #[error("{origin}: expected {expected} RGB texels for {width}x{height}, got {actual}")]
+    BufferSize {
+        origin: String,
+        width: usize,
+        height: usize,
+        expected: usize,
+        actual: usize,
+    },
+    /// NaN or infinite texel values: there is no sensible light to take from them.
+    #[error(
+        "{origin}: {count} texel values are NaN or infinite (first at texel x={x}, y={y}); fix or re-export the map"
+    )]
+    NonFinite {
+        origin: String,
+        count: usize,
+        x: usize,
+        y: usize,
+    },
+    /// A Phong exponent outside what the light maps support.
+    #[error("Phong exponent {exponent} is out of range (1..={max})")]
+    Exponent { exponent: u32, max: u32 },
+    /// A list of exponents with nothing in it, or a repeated one.
+    #[error("exponent list {0:?} is empty or has repeats")]
+    ExponentList(Vec<u32>),
+    /// A tolerance that is not a positive finite number below 1.
+    #[error("tolerance {0} must be in (0, 1)")]
+    Tolerance(f64),
+}
+
+/// Label of a map that did not come from a file.
+pub(crate) const IN_MEMORY: &str = "in-memory map";

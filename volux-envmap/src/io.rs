@@ -1,0 +1,409 @@
+//! Reading and writing environment maps and light maps.
+//!
+//! Reads OpenEXR (any compression the `exr` crate supports, DWAA/DWAB included), Radiance
+//! `.hdr`, and 8- or 16-bit PNG/JPEG (sRGB-decoded to linear). Writes OpenEXR (f32, lossless
+//! ZIP) and tone-mapped 8-bit PNG previews. Every write goes to a temporary file beside the
+//! target and is renamed into place, so an interrupted write never leaves a half-written file
+//! under the final name.
+
+use std::fs;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use crate::envmap::{EnvMap, Rgb, luminance};
+use crate::error::EnvMapError;
+
+/// File formats by extension.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    Exr,
+    Hdr,
+    /// 8- or 16-bit PNG or JPEG, sRGB-encoded.
+    Ldr,
+}
+
+impl Format {
+    /// The format of `path`, from its extension (case-insensitive).
+    pub fn of(path: &Path) -> Result<Format, EnvMapError> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        match ext.as_deref() {
+            Some("exr") => Ok(Format::Exr),
+            Some("hdr") => Ok(Format::Hdr),
+            Some("png" | "jpg" | "jpeg") => Ok(Format::Ldr),
+            _ => Err(EnvMapError::UnsupportedFormat {
+                path: path.to_path_buf(),
+            }),
+        }
+    }
+}
+
+/// Decoded pixels before validation: `(width, height, row-major linear RGB)`. Values may be
+/// negative or non-finite; [`EnvMap::validated`] decides what to do with them.
+pub struct RawImage {
+    pub width: usize,
+    pub height: usize,
+    pub texels: Vec<Rgb>,
+}
+
+/// Reads any supported file into linear RGB without validating it.
+pub fn read_raw(path: &Path) -> Result<RawImage, EnvMapError> {
+    match Format::of(path)? {
+        Format::Exr => read_exr(path),
+        Format::Hdr | Format::Ldr => read_with_image(path),
+    }
+}
+
+/// Reads and validates an environment map (see [`EnvMap::validated`] for the rules).
+pub fn load(path: &Path) -> Result<EnvMap, EnvMapError> {
+    let raw = read_raw(path)?;
+    EnvMap::validated(
+        raw.width,
+        raw.height,
+        raw.texels,
+        &path.display().to_string(),
+    )
+}
+
+fn read_exr(path: &Path) -> Result<RawImage, EnvMapError> {
+    use exr::prelude::*;
+    if let Err(source) = fs::metadata(path) {
+        return Err(EnvMapError::Io {
+            path: path.to_path_buf(),
+            source,
+        });
+    }
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .rgba_channels(
+            |size, _| RawImage {
+                width: size.width(),
+                height: size.height(),
+                texels: vec![[0.0; 3]; size.area()],
+            },
+            |img: &mut RawImage, pos, (r, g, b, _a): (f32, f32, f32, f32)| {
+                img.texels[pos.y() * img.width + pos.x()] = [r, g, b];
+            },
+        )
+        .first_valid_layer()
+        .all_attributes()
+        // Pedantic: a truncated or corrupt file is an error, not an image with holes.
+        .pedantic()
+        .from_file(path)
+        .map_err(|e| EnvMapError::Decode {
+            path: path.to_path_buf(),
+            format: "OpenEXR",
+            message: e.to_string(),
+        })?;
+    Ok(image.layer_data.channel_data.pixels)
+}
+
+fn read_with_image(path: &Path) -> Result<RawImage, EnvMapError> {
+    let format = if Format::of(path)? == Format::Hdr {
+        "Radiance HDR"
+    } else {
+        "PNG/JPEG"
+    };
+    let decode_err = |message: String| EnvMapError::Decode {
+        path: path.to_path_buf(),
+        format,
+        message,
+    };
+    let reader = image::ImageReader::open(path).map_err(|source| EnvMapError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let reader = reader
+        .with_guessed_format()
+        .map_err(|e| decode_err(e.to_string()))?;
+    let img = reader.decode().map_err(|e| decode_err(e.to_string()))?;
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    use image::ColorType as C;
+    let texels: Vec<Rgb> = match img.color() {
+        // Float images (Radiance HDR) are linear already.
+        C::Rgb32F | C::Rgba32F => img
+            .into_rgb32f()
+            .pixels()
+            .map(|p| [p.0[0], p.0[1], p.0[2]])
+            .collect(),
+        C::L16 | C::La16 | C::Rgb16 | C::Rgba16 => img
+            .into_rgb16()
+            .pixels()
+            .map(|p| p.0.map(|v| srgb_to_linear(f32::from(v) / 65535.0)))
+            .collect(),
+        _ => {
+            let lut: Vec<f32> = (0..256).map(|v| srgb_to_linear(v as f32 / 255.0)).collect();
+            img.into_rgb8()
+                .pixels()
+                .map(|p| p.0.map(|v| lut[v as usize]))
+                .collect()
+        }
+    };
+    Ok(RawImage {
+        width,
+        height,
+        texels,
+    })
+}
+
+/// The sRGB transfer function, decoded: 8-bit display value in [0, 1] to linear.
+pub fn srgb_to_linear(v: f32) -> f32 {
+    if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// The sRGB transfer function, encoded: linear in [0, 1] to display value in [0, 1].
+pub fn linear_to_srgb(v: f32) -> f32 {
+    let v = v.clamp(0.0, 1.0);
+    if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
+/// Runs `write` on a temporary file next to `path`, then renames it to `path`. On any error
+/// the temporary file is removed and `path` is untouched.
+pub fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<(), EnvMapError>,
+) -> Result<(), EnvMapError> {
+    let file_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    // Keep the extension last: encoders pick the format from it.
+    let tmp: PathBuf = path.with_file_name(format!(".{}.{}.tmp.{file_name}", file_name, std::process::id()));
+    let result = write(&tmp).and_then(|()| {
+        fs::rename(&tmp, path).map_err(|source| EnvMapError::Io {
+            path: path.to_path_buf(),
+            source,
+        })
+    });
+    if result.is_err() {
+        let _ = fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// Writes linear RGB texels as a 32-bit float OpenEXR file (ZIP, lossless), atomically.
+pub fn save_exr(
+    path: &Path,
+    width: usize,
+    height: usize,
+    texels: &[Rgb],
+) -> Result<(), EnvMapError> {
+    use exr::prelude::*;
+    assert_eq!(texels.len(), width * height, "texel buffer size");
+    write_atomically(path, |tmp| {
+        let channels =
+            SpecificChannels::rgb(|Vec2(x, y): Vec2<usize>| {
+                let c = texels[y * width + x];
+                (c[0], c[1], c[2])
+            });
+        Image::from_encoded_channels((width, height), Encoding::SMALL_LOSSLESS, channels)
+            .write()
+            .to_file(tmp)
+            .map_err(|e| EnvMapError::Encode {
+                path: path.to_path_buf(),
+                format: "OpenEXR",
+                message: e.to_string(),
+            })
+    })
+}
+
+/// Writes an environment map as OpenEXR.
+pub fn save_envmap_exr(path: &Path, map: &EnvMap) -> Result<(), EnvMapError> {
+    save_exr(path, map.width(), map.height(), map.texels())
+}
+
+/// Writes 8-bit sRGB pixels as PNG, atomically.
+pub fn save_png(
+    path: &Path,
+    width: usize,
+    height: usize,
+    pixels: &[[u8; 3]],
+) -> Result<(), EnvMapError> {
+    assert_eq!(pixels.len(), width * height, "pixel buffer size");
+    write_atomically(path, |tmp| {
+        let encode_err = |message: String| EnvMapError::Encode {
+            path: path.to_path_buf(),
+            format: "PNG",
+            message,
+        };
+        let file = fs::File::create(tmp).map_err(|source| EnvMapError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let mut out = BufWriter::new(file);
+        let bytes: Vec<u8> = pixels.iter().flatten().copied().collect();
+        image::ImageEncoder::write_image(
+            image::codecs::png::PngEncoder::new(&mut out),
+            &bytes,
+            width as u32,
+            height as u32,
+            image::ExtendedColorType::Rgb8,
+        )
+        .map_err(|e| encode_err(e.to_string()))?;
+        out.flush().map_err(|source| EnvMapError::Io {
+            path: path.to_path_buf(),
+            source,
+        })
+    })
+}
+
+/// Exposure that maps the log-average luminance to middle grey (Reinhard et al. 2002), so that
+/// a preview of a dim night and of a noon sky both show their structure. 1 for a black map.
+pub fn auto_exposure(texels: &[Rgb]) -> f32 {
+    if texels.is_empty() {
+        return 1.0;
+    }
+    let delta = 1e-4;
+    let log_avg = texels
+        .iter()
+        .map(|c| (delta + luminance(*c).max(0.0)).ln())
+        .sum::<f64>()
+        / texels.len() as f64;
+    let key = log_avg.exp() - delta;
+    if key > 1e-12 { (0.18 / key) as f32 } else { 1.0 }
+}
+
+/// Tone-maps linear HDR texels to 8-bit sRGB: scale by `exposure`, then Reinhard's
+/// `L / (1 + L)` on luminance (hue kept), then the sRGB curve. Always finite.
+pub fn tonemap(texels: &[Rgb], exposure: f32) -> Vec<[u8; 3]> {
+    texels
+        .iter()
+        .map(|c| {
+            let scaled = c.map(|v| v.max(0.0) * exposure);
+            let lum = luminance(scaled) as f32;
+            let k = 1.0 / (1.0 + lum);
+            scaled.map(|v| (linear_to_srgb(v * k) * 255.0 + 0.5) as u8)
+        })
+        .collect()
+}
+
+/// Writes a tone-mapped PNG preview of a map (automatic exposure).
+pub fn save_preview_png(path: &Path, map: &EnvMap) -> Result<(), EnvMapError> {
+    let pixels = tonemap(map.texels(), auto_exposure(map.texels()));
+    save_png(path, map.width(), map.height(), &pixels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample_map() -> EnvMap {
+        EnvMap::from_fn(8, |d| {
+            [
+                (d[1] + 1.0) as f32 * 3.0,
+                (d[0] * d[0]) as f32 * 1e4,
+                (d[2] + 1.0) as f32 * 1e-3,
+            ]
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn exr_round_trip_is_lossless() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.exr");
+        let m = sample_map();
+        save_envmap_exr(&path, &m).unwrap();
+        assert_eq!(load(&path).unwrap(), m);
+        // No temporary file is left behind.
+        assert_eq!(fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn truncated_exr_is_an_error_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cut.exr");
+        save_envmap_exr(&path, &sample_map()).unwrap();
+        let bytes = fs::read(&path).unwrap();
+        for keep in [10, bytes.len() / 2, bytes.len() - 7] {
+            fs::write(&path, &bytes[..keep]).unwrap();
+            let e = load(&path).unwrap_err();
+            assert!(matches!(e, EnvMapError::Decode { .. }), "{keep}: {e}");
+            assert!(e.to_string().contains("cut.exr"), "{e}");
+        }
+    }
+
+    #[test]
+    fn missing_and_unknown_files_are_clear_errors() {
+        let e = load(Path::new("no/such/map.exr")).unwrap_err();
+        assert!(matches!(e, EnvMapError::Io { .. }) && e.to_string().contains("map.exr"), "{e}");
+        let e = load(Path::new("no/such/map.hdr")).unwrap_err();
+        assert!(e.to_string().contains("map.hdr"), "{e}");
+        let e = load(Path::new("map.tiff")).unwrap_err();
+        assert!(matches!(e, EnvMapError::UnsupportedFormat { .. }), "{e}");
+        let dir = tempfile::tempdir().unwrap();
+        let garbage = dir.path().join("garbage.png");
+        fs::write(&garbage, b"not a png at all").unwrap();
+        let e = load(&garbage).unwrap_err();
+        assert!(e.to_string().contains("garbage.png"), "{e}");
+    }
+
+    #[test]
+    fn non_finite_and_non_equirect_files_are_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("nan.exr");
+        let mut t = vec![[1.0f32; 3]; 32];
+        t[5][2] = f32::NAN;
+        t[6][0] = f32::INFINITY;
+        save_exr(&path, 8, 4, &t).unwrap();
+        let e = load(&path).unwrap_err();
+        assert!(e.to_string().contains("2 texel values") && e.to_string().contains("nan.exr"));
+        let path = dir.path().join("square.exr");
+        save_exr(&path, 4, 4, &[[1.0; 3]; 16]).unwrap();
+        let e = load(&path).unwrap_err();
+        assert!(matches!(e, EnvMapError::AspectRatio { .. }), "{e}");
+    }
+
+    #[test]
+    fn hdr_and_png_are_read_as_linear() {
+        let dir = tempfile::tempdir().unwrap();
+        // Radiance HDR written by the image crate.
+        let hdr = dir.path().join("m.hdr");
+        let pixels: Vec<image::Rgb<f32>> = (0..32)
+            .map(|i| image::Rgb([i as f32 * 10.0, 0.5, 1e-2]))
+            .collect();
+        let f = fs::File::create(&hdr).unwrap();
+        image::codecs::hdr::HdrEncoder::new(f).encode(&pixels, 8, 4).unwrap();
+        let m = load(&hdr).unwrap();
+        assert_eq!((m.width(), m.height()), (8, 4));
+        let rel = (m.texel(3, 1)[0] - 110.0).abs() / 110.0;
+        assert!(rel < 0.01, "RGBE keeps about 1% precision: {}", m.texel(3, 1)[0]);
+        // 8-bit PNG: 255 -> 1.0, 128 -> 0.2158 (sRGB), 0 -> 0.
+        let png = dir.path().join("m.png");
+        let mut px = vec![[0u8, 128, 255]; 32];
+        px[1] = [255, 255, 255];
+        save_png(&png, 8, 4, &px).unwrap();
+        let m = load(&png).unwrap();
+        assert_eq!(m.texel(0, 0)[0], 0.0);
+        assert!((m.texel(0, 0)[1] - 0.215_861).abs() < 1e-5);
+        assert_eq!(m.texel(1, 0), [1.0, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn srgb_curves_invert_each_other() {
+        for i in 0..=255 {
+            let v = i as f32 / 255.0;
+            assert!((linear_to_srgb(srgb_to_linear(v)) - v).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn tonemap_is_finite_for_a_huge_sun_and_black() {
+        let px = tonemap(&[[1e6, 1e6, 1e6], [0.0; 3], [1.0, 0.0, 0.0]], 1.0);
+        assert_eq!(px[0], [255, 255, 255]);
+        assert_eq!(px[1], [0, 0, 0]);
+        assert!(px[2][0] > 0 && px[2][1] == 0);
+        assert_eq!(auto_exposure(&[[0.0; 3]; 4]), 1.0);
+    }
+}
