@@ -16,6 +16,7 @@
 //! `L_n(w) = (n + 1) / (2 pi) * integral H(u) max(0, w.u)^n du`, so a constant map gives the
 //! same constant for every `n`.
 
+pub mod bright;
 pub mod direction;
 pub mod envmap;
 pub mod error;

@@ -33,6 +33,7 @@ pub struct LightMap {
     height: usize,
     texels: Vec<Rgb>,
     clamped: usize,
+    ringing: f64,
 }
 
 impl LightMap {
@@ -50,13 +51,21 @@ impl LightMap {
             height,
             texels,
             clamped: 0,
+            ringing: 0.0,
         }
     }
 
-    /// Records how many values were negative (band-limit ringing) and clamped to 0.
-    pub fn with_clamped(mut self, clamped: usize) -> LightMap {
+    /// Records how many values were negative (band-limit ringing) and clamped to 0, and the
+    /// deepest of them relative to the map's peak.
+    pub fn with_clamped(mut self, clamped: usize, ringing: f64) -> LightMap {
         self.clamped = clamped;
+        self.ringing = ringing;
         self
+    }
+
+    /// The deepest negative value before clamping, relative to the peak (0 if none).
+    pub fn ringing(&self) -> f64 {
+        self.ringing
     }
 
     /// How many channel values were negative when computed and are stored as 0.

@@ -12,6 +12,7 @@
 use crate::envmap::EnvMap;
 use crate::error::EnvMapError;
 use crate::lightmap::{LightMap, LightMapSet};
+use crate::bright;
 use crate::lobe::LobePlan;
 use crate::sh;
 
@@ -124,26 +125,67 @@ pub fn preconvolve_with_progress(
         return Ok(LightMapSet::new(maps));
     }
     let lmax = plans.iter().map(|p| p.band_limit).max().unwrap_or(0);
+    let quad_tol = options.tolerance * 1e-2; // analysis quadrature far below the budget
+    let bright = bright::select(map, &plans, options.tolerance);
+    let direct: Vec<bool> = plans
+        .iter()
+        .map(|p| !bright.is_empty() && bright::affordable(p, map.height(), bright.len()))
+        .collect();
     progress(Progress::Analysis);
-    // The analysis quadrature is kept two orders of magnitude below the budget.
-    let coeffs = sh::analyse(map, lmax, options.tolerance * 1e-2);
+    // Lobes that sum the bright texels directly convolve the rest of the map; the others
+    // convolve all of it.
+    let whole = direct.iter().any(|d| !d).then(|| sh::analyse(map, lmax, quad_tol));
+    let rest = direct.iter().any(|d| *d).then(|| {
+        tracing::debug!("summing {} bright texels directly", bright.len());
+        let mut rest = map.clone();
+        for &(x, y) in &bright {
+            rest.set_texel(x, y, [0.0; 3]);
+        }
+        sh::analyse(&rest, lmax, quad_tol)
+    });
     let mut maps = Vec::with_capacity(total);
-    for (index, plan) in plans.iter().enumerate() {
+    for (index, (plan, &direct)) in plans.iter().zip(&direct).enumerate() {
         progress(Progress::Lobe {
             index,
             total,
             exponent: plan.exponent,
         });
-        let (texels, negatives) = sh::synthesise(&coeffs, &plan.coefficients, plan.height);
-        if negatives > 0 {
-            tracing::debug!(
-                "n={}: clamped {negatives} negative values (band-limit ringing) to 0",
-                plan.exponent
-            );
+        let coeffs = if direct { &rest } else { &whole };
+        let coeffs = coeffs.as_ref().expect("analysed above");
+        let mut values = sh::synthesise(coeffs, &plan.coefficients, plan.height);
+        if direct {
+            bright::add_direct(map, &bright, plan.exponent, plan.height, &mut values);
         }
-        maps.push(
-            LightMap::new(plan.exponent, plan.width(), plan.height, texels).with_clamped(negatives),
-        );
+        maps.push(finish(plan, values));
     }
     Ok(LightMapSet::new(maps))
+}
+
+/// Rounds a lobe's values to f32, clamping the negative values that band-limit ringing leaves
+/// to zero and recording how many there were and how deep the deepest went.
+fn finish(plan: &LobePlan, values: Vec<[f64; 3]>) -> LightMap {
+    let peak = values.iter().flatten().copied().fold(0.0f64, f64::max);
+    let mut clamped = 0;
+    let mut deepest = 0.0f64;
+    let texels = values
+        .iter()
+        .map(|c| {
+            c.map(|v| {
+                if v < 0.0 {
+                    clamped += 1;
+                    deepest = deepest.min(v);
+                }
+                v.max(0.0) as f32
+            })
+        })
+        .collect();
+    if clamped > 0 {
+        tracing::debug!(
+            "n={}: clamped {clamped} negative values (band-limit ringing, deepest {:.2e} of the peak)",
+            plan.exponent,
+            -deepest / peak
+        );
+    }
+    LightMap::new(plan.exponent, plan.width(), plan.height, texels)
+        .with_clamped(clamped, if peak > 0.0 { -deepest / peak } else { 0.0 })
 }

@@ -19,7 +19,7 @@ use rayon::prelude::*;
 use rustfft::num_complex::Complex64;
 use rustfft::{Fft, FftPlanner};
 
-use crate::envmap::{EnvMap, Rgb};
+use crate::envmap::EnvMap;
 use crate::legendre::{LegendreTable, gauss_legendre};
 
 /// Spherical-harmonic coefficients `a_lm = integral H Y_lm^*` for `0 <= m <= l <= lmax` (the
@@ -168,9 +168,8 @@ pub fn analyse(map: &EnvMap, lmax: usize, quad_tol: f64) -> ShCoeffs {
 }
 
 /// Evaluates `f = sum_lm kernel_l a_lm Y_lm` (degrees `l < kernel.len()`) at the texel centres
-/// of a `2 height x height` equirectangular grid. Negative values (ringing of the band limit)
-/// are clamped to zero; their count is returned with the texels.
-pub fn synthesise(coeffs: &ShCoeffs, kernel: &[f64], height: usize) -> (Vec<Rgb>, usize) {
+/// of a `2 height x height` equirectangular grid, row-major from the top row.
+pub fn synthesise(coeffs: &ShCoeffs, kernel: &[f64], height: usize) -> Vec<[f64; 3]> {
     let lmax = kernel.len() - 1;
     assert!(lmax <= coeffs.lmax(), "kernel degree beyond the analysed band");
     let width = 2 * height;
@@ -187,7 +186,7 @@ pub fn synthesise(coeffs: &ShCoeffs, kernel: &[f64], height: usize) -> (Vec<Rgb>
     let phase: Vec<Complex64> = (0..=lmax)
         .map(|m| Complex64::from_polar(1.0, m as f64 * phi0))
         .collect();
-    let rows: Vec<(Vec<Rgb>, usize)> = (0..height)
+    let rows: Vec<Vec<[f64; 3]>> = (0..height)
         .into_par_iter()
         .map_init(
             || {
@@ -227,22 +226,13 @@ pub fn synthesise(coeffs: &ShCoeffs, kernel: &[f64], height: usize) -> (Vec<Rgb>
                 for sp in spectrum.iter_mut() {
                     fft.process_with_scratch(sp, scratch);
                 }
-                let mut negatives = 0;
-                let row = (0..width)
-                    .map(|x| {
-                        std::array::from_fn(|ch| {
-                            let v = spectrum[ch][x].re;
-                            negatives += usize::from(v < 0.0);
-                            v.max(0.0) as f32
-                        })
-                    })
-                    .collect();
-                (row, negatives)
+                (0..width)
+                    .map(|x| std::array::from_fn(|ch| spectrum[ch][x].re))
+                    .collect()
             },
         )
         .collect();
-    let negatives = rows.iter().map(|r| r.1).sum();
-    (rows.into_iter().flat_map(|r| r.0).collect(), negatives)
+    rows.concat()
 }
 
 #[cfg(test)]
@@ -286,12 +276,11 @@ mod tests {
         };
         let map = EnvMap::from_fn(256, f).unwrap();
         let sh = analyse(&map, 8, 1e-12);
-        let (out, negatives) = synthesise(&sh, &[1.0; 9], 32);
-        assert_eq!(negatives, 0);
+        let out = synthesise(&sh, &[1.0; 9], 32);
         for y in 0..32 {
             for x in 0..64 {
                 let want = f(direction::texel_dir(x, y, 64, 32))[0];
-                let got = out[y * 64 + x][0];
+                let got = out[y * 64 + x][0] as f32;
                 assert!((got - want).abs() < 2e-3, "({x},{y}): {got} vs {want}");
             }
         }
