@@ -28,8 +28,12 @@ pub const MAX_BRIGHT_TEXELS: usize = 64;
 /// what the plans can band-limit within `tolerance`, brightest first.
 pub fn select(map: &EnvMap, plans: &[LobePlan], tolerance: f64) -> Vec<(usize, usize)> {
     let (w, h) = (map.width(), map.height());
-    let energy = |x: usize, y: usize| luminance(map.texel(x, y)) * direction::row_solid_angle(y, w, h);
-    let total: f64 = (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).map(|(x, y)| energy(x, y)).sum();
+    let energy =
+        |x: usize, y: usize| luminance(map.texel(x, y)) * direction::row_solid_angle(y, w, h);
+    let total: f64 = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| energy(x, y))
+        .sum();
     if total <= 0.0 {
         return Vec::new();
     }
@@ -58,7 +62,8 @@ pub fn select(map: &EnvMap, plans: &[LobePlan], tolerance: f64) -> Vec<(usize, u
 /// Whether summing `count` texels of a map `map_height` tall directly for `plan` fits
 /// [`DIRECT_BUDGET`].
 pub fn affordable(plan: &LobePlan, map_height: usize, count: usize) -> bool {
-    plan.width() * plan.height * subdivision(map_height, plan.exponent).pow(2) * count <= DIRECT_BUDGET
+    plan.width() * plan.height * subdivision(map_height, plan.exponent).pow(2) * count
+        <= DIRECT_BUDGET
 }
 
 /// Sub-cells per texel side for a lobe: at most a quarter of the lobe's width (the midpoint
@@ -84,7 +89,13 @@ fn sub_cells(x: usize, y: usize, w: usize, h: usize, exponent: u32) -> Vec<([f64
 
 /// Adds the exact light of `texels` of `map`, for lobe `exponent`, to the light-map `out`
 /// (`2 height x height`, values at texel centres).
-pub fn add_direct(map: &EnvMap, texels: &[(usize, usize)], exponent: u32, height: usize, out: &mut [[f64; 3]]) {
+pub fn add_direct(
+    map: &EnvMap,
+    texels: &[(usize, usize)],
+    exponent: u32,
+    height: usize,
+    out: &mut [[f64; 3]],
+) {
     let (w, h) = (map.width(), map.height());
     let norm = (f64::from(exponent) + 1.0) / std::f64::consts::TAU;
     let sources: Vec<(Rgb, Vec<([f64; 3], f64)>)> = texels
@@ -100,7 +111,11 @@ pub fn add_direct(map: &EnvMap, texels: &[(usize, usize)], exponent: u32, height
                     .iter()
                     .map(|(u, omega)| {
                         let c = direction::dot(d, *u);
-                        if c > 0.0 { omega * c.powi(exponent as i32) } else { 0.0 }
+                        if c > 0.0 {
+                            omega * c.powi(exponent as i32)
+                        } else {
+                            0.0
+                        }
                     })
                     .sum::<f64>()
                     * norm;

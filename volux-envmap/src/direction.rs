@@ -58,7 +58,11 @@ pub fn rotate_yaw(d: Dir, angle: f64) -> Dir {
 /// `r = d - 2 (d.n) n`, the direction the specular light maps are indexed by.
 pub fn reflect(d: Dir, n: Dir) -> Dir {
     let dn = d[0] * n[0] + d[1] * n[1] + d[2] * n[2];
-    [d[0] - 2.0 * dn * n[0], d[1] - 2.0 * dn * n[1], d[2] - 2.0 * dn * n[2]]
+    [
+        d[0] - 2.0 * dn * n[0],
+        d[1] - 2.0 * dn * n[1],
+        d[2] - 2.0 * dn * n[2],
+    ]
 }
 
 /// Dot product.
@@ -76,11 +80,26 @@ mod tests {
 
     #[test]
     fn axes_follow_design_conventions() {
-        assert!(close(uv_to_dir(0.5, 0.5), [0.0, 0.0, 1.0], 1e-15), "centre faces +z");
-        assert!(close(uv_to_dir(0.75, 0.5), [1.0, 0.0, 0.0], 1e-15), "u = 3/4 is +x");
-        assert!(close(uv_to_dir(0.0, 0.5), [0.0, 0.0, -1.0], 1e-15), "seam is -z");
-        assert!(close(uv_to_dir(0.3, 0.0), [0.0, 1.0, 0.0], 1e-15), "v = 0 is up");
-        assert!(close(uv_to_dir(0.3, 1.0), [0.0, -1.0, 0.0], 1e-15), "v = 1 is down");
+        assert!(
+            close(uv_to_dir(0.5, 0.5), [0.0, 0.0, 1.0], 1e-15),
+            "centre faces +z"
+        );
+        assert!(
+            close(uv_to_dir(0.75, 0.5), [1.0, 0.0, 0.0], 1e-15),
+            "u = 3/4 is +x"
+        );
+        assert!(
+            close(uv_to_dir(0.0, 0.5), [0.0, 0.0, -1.0], 1e-15),
+            "seam is -z"
+        );
+        assert!(
+            close(uv_to_dir(0.3, 0.0), [0.0, 1.0, 0.0], 1e-15),
+            "v = 0 is up"
+        );
+        assert!(
+            close(uv_to_dir(0.3, 1.0), [0.0, -1.0, 0.0], 1e-15),
+            "v = 1 is down"
+        );
     }
 
     #[test]
@@ -122,7 +141,11 @@ mod tests {
         let r = rotate_yaw(d, 0.25 * 2.0 * PI);
         let (u, v) = dir_to_uv(r);
         assert!((u - 0.45).abs() < 1e-12 && (v - 0.3).abs() < 1e-12);
-        assert!(close(rotate_yaw([0.0, 0.0, 1.0], PI / 2.0), [1.0, 0.0, 0.0], 1e-15));
+        assert!(close(
+            rotate_yaw([0.0, 0.0, 1.0], PI / 2.0),
+            [1.0, 0.0, 0.0],
+            1e-15
+        ));
     }
 
     #[test]

@@ -158,7 +158,10 @@ impl EnvMap {
     /// The map area-averaged by an integer `factor` in both directions (texels weighted by
     /// their exact solid angle, so the total energy is kept). `factor` must divide the height.
     pub fn downsampled(&self, factor: usize) -> EnvMap {
-        assert!(factor >= 1 && self.height % factor == 0, "factor must divide the height");
+        assert!(
+            factor >= 1 && self.height % factor == 0,
+            "factor must divide the height"
+        );
         let (w, h) = (self.width / factor, self.height / factor);
         let mut texels = vec![[0f32; 3]; w * h];
         for (y, row_out) in texels.chunks_mut(w).enumerate() {
@@ -301,7 +304,9 @@ mod tests {
 
     fn ramp(h: usize) -> EnvMap {
         let w = 2 * h;
-        let texels = (0..w * h).map(|i| [i as f32, (i % w) as f32, 1.0]).collect();
+        let texels = (0..w * h)
+            .map(|i| [i as f32, (i % w) as f32, 1.0])
+            .collect();
         EnvMap::new(w, h, texels).unwrap()
     }
 
@@ -322,7 +327,10 @@ mod tests {
         t[20][1] = f32::NEG_INFINITY;
         let e = EnvMap::validated(8, 4, t, "sky.exr").unwrap_err();
         let msg = e.to_string();
-        assert!(msg.contains("sky.exr") && msg.contains("3 texel values"), "{msg}");
+        assert!(
+            msg.contains("sky.exr") && msg.contains("3 texel values"),
+            "{msg}"
+        );
         assert!(msg.contains("x=1, y=1"), "{msg}");
     }
 
@@ -374,8 +382,13 @@ mod tests {
         let sum = |e: &EnvMap| e.texels().iter().map(|c| f64::from(c[0])).sum::<f64>();
         assert!((sum(&r) - 1.0).abs() < 1e-6);
         // The centroid of the row moves by angle / (2 pi) * width texels.
-        let cx: f64 = (0..64).map(|x| x as f64 * f64::from(r.texel(x, 12)[0])).sum();
-        assert!((cx - (10.0 + angle / (2.0 * PI) * 64.0)).abs() < 1e-4, "{cx}");
+        let cx: f64 = (0..64)
+            .map(|x| x as f64 * f64::from(r.texel(x, 12)[0]))
+            .sum();
+        assert!(
+            (cx - (10.0 + angle / (2.0 * PI) * 64.0)).abs() < 1e-4,
+            "{cx}"
+        );
     }
 
     #[test]
@@ -387,10 +400,16 @@ mod tests {
             (0..e.height())
                 .map(|y| {
                     let omega = direction::row_solid_angle(y, e.width(), e.height());
-                    e.row(y).iter().map(|c| omega * f64::from(c[0])).sum::<f64>()
+                    e.row(y)
+                        .iter()
+                        .map(|c| omega * f64::from(c[0]))
+                        .sum::<f64>()
                 })
                 .sum()
         };
-        assert!((energy(&m) - energy(&d)).abs() < 1e-6 * energy(&m), "f32 rounding only");
+        assert!(
+            (energy(&m) - energy(&d)).abs() < 1e-6 * energy(&m),
+            "f32 rounding only"
+        );
     }
 }

@@ -179,7 +179,11 @@ pub fn write_atomically(
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     // Keep the extension last: encoders pick the format from it.
-    let tmp: PathBuf = path.with_file_name(format!(".{}.{}.tmp.{file_name}", file_name, std::process::id()));
+    let tmp: PathBuf = path.with_file_name(format!(
+        ".{}.{}.tmp.{file_name}",
+        file_name,
+        std::process::id()
+    ));
     let result = write(&tmp).and_then(|()| {
         fs::rename(&tmp, path).map_err(|source| EnvMapError::Io {
             path: path.to_path_buf(),
@@ -202,11 +206,10 @@ pub fn save_exr(
     use exr::prelude::*;
     assert_eq!(texels.len(), width * height, "texel buffer size");
     write_atomically(path, |tmp| {
-        let channels =
-            SpecificChannels::rgb(|Vec2(x, y): Vec2<usize>| {
-                let c = texels[y * width + x];
-                (c[0], c[1], c[2])
-            });
+        let channels = SpecificChannels::rgb(|Vec2(x, y): Vec2<usize>| {
+            let c = texels[y * width + x];
+            (c[0], c[1], c[2])
+        });
         Image::from_encoded_channels((width, height), Encoding::SMALL_LOSSLESS, channels)
             .write()
             .to_file(tmp)
@@ -271,7 +274,11 @@ pub fn auto_exposure(texels: &[Rgb]) -> f32 {
         .sum::<f64>()
         / texels.len() as f64;
     let key = log_avg.exp() - delta;
-    if key > 1e-12 { (0.18 / key) as f32 } else { 1.0 }
+    if key > 1e-12 {
+        (0.18 / key) as f32
+    } else {
+        1.0
+    }
 }
 
 /// Tone-maps linear HDR texels to 8-bit sRGB: scale by `exposure`, then Reinhard's
@@ -337,7 +344,10 @@ mod tests {
     #[test]
     fn missing_and_unknown_files_are_clear_errors() {
         let e = load(Path::new("no/such/map.exr")).unwrap_err();
-        assert!(matches!(e, EnvMapError::Io { .. }) && e.to_string().contains("map.exr"), "{e}");
+        assert!(
+            matches!(e, EnvMapError::Io { .. }) && e.to_string().contains("map.exr"),
+            "{e}"
+        );
         let e = load(Path::new("no/such/map.hdr")).unwrap_err();
         assert!(e.to_string().contains("map.hdr"), "{e}");
         let e = load(Path::new("map.tiff")).unwrap_err();
@@ -374,11 +384,17 @@ mod tests {
             .map(|i| image::Rgb([i as f32 * 10.0, 0.5, 1e-2]))
             .collect();
         let f = fs::File::create(&hdr).unwrap();
-        image::codecs::hdr::HdrEncoder::new(f).encode(&pixels, 8, 4).unwrap();
+        image::codecs::hdr::HdrEncoder::new(f)
+            .encode(&pixels, 8, 4)
+            .unwrap();
         let m = load(&hdr).unwrap();
         assert_eq!((m.width(), m.height()), (8, 4));
         let rel = (m.texel(3, 1)[0] - 110.0).abs() / 110.0;
-        assert!(rel < 0.01, "RGBE keeps about 1% precision: {}", m.texel(3, 1)[0]);
+        assert!(
+            rel < 0.01,
+            "RGBE keeps about 1% precision: {}",
+            m.texel(3, 1)[0]
+        );
         // 8-bit PNG: 255 -> 1.0, 128 -> 0.2158 (sRGB), 0 -> 0.
         let png = dir.path().join("m.png");
         let mut px = vec![[0u8, 128, 255]; 32];

@@ -181,7 +181,9 @@ mod tests {
         assert!((out[t.index(1, 1)] - (k(3.0) / 2.0).sqrt() * s).abs() < 1e-15);
         assert!((out[t.index(2, 0)] - k(5.0).sqrt() * 0.5 * (3.0 * x * x - 1.0)).abs() < 1e-14);
         assert!((out[t.index(2, 2)] - (k(15.0) / 8.0).sqrt() * s * s).abs() < 1e-14);
-        assert!((out[t.index(3, 1)] - (k(21.0) / 16.0).sqrt() * s * (5.0 * x * x - 1.0)).abs() < 1e-14);
+        assert!(
+            (out[t.index(3, 1)] - (k(21.0) / 16.0).sqrt() * s * (5.0 * x * x - 1.0)).abs() < 1e-14
+        );
     }
 
     #[test]
@@ -232,8 +234,15 @@ mod tests {
             let (x, w) = gauss_legendre(q);
             for deg in 0..2 * q {
                 let got: f64 = x.iter().zip(&w).map(|(x, w)| w * x.powi(deg as i32)).sum();
-                let want = if deg % 2 == 1 { 0.0 } else { 2.0 / (deg as f64 + 1.0) };
-                assert!((got - want).abs() < 1e-13, "q={q} deg={deg}: {got} vs {want}");
+                let want = if deg % 2 == 1 {
+                    0.0
+                } else {
+                    2.0 / (deg as f64 + 1.0)
+                };
+                assert!(
+                    (got - want).abs() < 1e-13,
+                    "q={q} deg={deg}: {got} vs {want}"
+                );
             }
         }
     }

@@ -219,7 +219,11 @@ impl LightMapSet {
             }
         }
         let exposure = io::auto_exposure(&linear[..tw * tile_height]);
-        (tw, tile_height * self.maps.len(), io::tonemap(&linear, exposure))
+        (
+            tw,
+            tile_height * self.maps.len(),
+            io::tonemap(&linear, exposure),
+        )
     }
 }
 
@@ -321,7 +325,14 @@ mod tests {
                 top * (1.0 - fy) + bot * fy
             })
         };
-        for (u, v) in [(0.0, 0.0), (0.01, 0.02), (0.5, 0.5), (0.99, 0.97), (0.3, 1.0), (0.77, 0.13)] {
+        for (u, v) in [
+            (0.0, 0.0),
+            (0.01, 0.02),
+            (0.5, 0.5),
+            (0.99, 0.97),
+            (0.3, 1.0),
+            (0.77, 0.13),
+        ] {
             let (a, b) = (sample(u, v), m.lookup_uv(u, v));
             for c in 0..3 {
                 assert!((a[c] - b[c]).abs() < 1e-4, "({u},{v}): {a:?} vs {b:?}");

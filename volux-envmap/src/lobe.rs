@@ -136,7 +136,8 @@ pub fn interpolation_error(profile: &ProfileTable, height: usize) -> f64 {
         let exact = profile.at(angle);
         for k in 0..offsets {
             let s = (k as f64 + 0.5) / offsets as f64;
-            let interp = (1.0 - s) * profile.at(angle - s * h) + s * profile.at(angle + (1.0 - s) * h);
+            let interp =
+                (1.0 - s) * profile.at(angle - s * h) + s * profile.at(angle + (1.0 - s) * h);
             err2 += weight * (interp - exact).powi(2);
         }
         ref2 += weight * exact * exact * offsets as f64;
@@ -259,7 +260,12 @@ mod tests {
             let a = phong_spectrum(n, 40);
             let b = spectrum_by_quadrature(n, 40);
             for l in 0..=40 {
-                assert!((a[l] - b[l]).abs() < 1e-12, "n={n} l={l}: {} vs {}", a[l], b[l]);
+                assert!(
+                    (a[l] - b[l]).abs() < 1e-12,
+                    "n={n} l={l}: {} vs {}",
+                    a[l],
+                    b[l]
+                );
             }
         }
         // Clamped cosine / pi (irradiance / pi): 1, 2/3, 1/4, 0, -1/24 (Ramamoorthi-Hanrahan).
@@ -273,7 +279,11 @@ mod tests {
     fn energy_closed_form_matches_the_sum() {
         for n in [1u32, 16, 64] {
             let s = phong_spectrum(n, 3000);
-            let sum: f64 = s.iter().enumerate().map(|(l, v)| (2 * l + 1) as f64 * v * v).sum();
+            let sum: f64 = s
+                .iter()
+                .enumerate()
+                .map(|(l, v)| (2 * l + 1) as f64 * v * v)
+                .sum();
             let rel = (sum / (4.0 * PI) - phong_energy(n)).abs() / phong_energy(n);
             assert!(rel < 1e-7, "n={n}: {rel}");
         }

@@ -9,10 +9,10 @@
 //! nothing, black rows are skipped in the analysis, and nothing is computed at a resolution
 //! the tolerance does not ask for.
 
+use crate::bright;
 use crate::envmap::EnvMap;
 use crate::error::EnvMapError;
 use crate::lightmap::{LightMap, LightMapSet};
-use crate::bright;
 use crate::lobe::LobePlan;
 use crate::sh;
 
@@ -120,7 +120,14 @@ pub fn preconvolve_with_progress(
     if map.is_black() {
         let maps = plans
             .iter()
-            .map(|p| LightMap::new(p.exponent, p.width(), p.height, vec![[0.0; 3]; p.width() * p.height]))
+            .map(|p| {
+                LightMap::new(
+                    p.exponent,
+                    p.width(),
+                    p.height,
+                    vec![[0.0; 3]; p.width() * p.height],
+                )
+            })
             .collect();
         return Ok(LightMapSet::new(maps));
     }
@@ -134,7 +141,10 @@ pub fn preconvolve_with_progress(
     progress(Progress::Analysis);
     // Lobes that sum the bright texels directly convolve the rest of the map; the others
     // convolve all of it.
-    let whole = direct.iter().any(|d| !d).then(|| sh::analyse(map, lmax, quad_tol));
+    let whole = direct
+        .iter()
+        .any(|d| !d)
+        .then(|| sh::analyse(map, lmax, quad_tol));
     let rest = direct.iter().any(|d| *d).then(|| {
         tracing::debug!("summing {} bright texels directly", bright.len());
         let mut rest = map.clone();

@@ -127,11 +127,18 @@ mod tests {
             let den: f64 = (0..r.x.len())
                 .map(|i| {
                     let d = w[0] * r.x[i] + w[1] * r.y[i] + w[2] * r.z[i];
-                    if d > 0.0 { r.omega[i] * d.powi(n as i32) } else { 0.0 }
+                    if d > 0.0 {
+                        r.omega[i] * d.powi(n as i32)
+                    } else {
+                        0.0
+                    }
                 })
                 .sum();
             let exact = 2.0 * PI / (f64::from(n) + 1.0);
-            assert!((den - exact).abs() / exact < 2e-3, "n={n}: {den} vs {exact}");
+            assert!(
+                (den - exact).abs() / exact < 2e-3,
+                "n={n}: {den} vs {exact}"
+            );
         }
     }
 
@@ -151,6 +158,9 @@ mod tests {
     fn narrow_lobe_on_a_tiny_map_is_subdivided() {
         let map = EnvMap::constant(4, [1.0; 3]).unwrap();
         assert!(Reference::new(&map, 512).subdivision() > 100);
-        assert_eq!(Reference::new(&EnvMap::constant(512, [1.0; 3]).unwrap(), 64).subdivision(), 1);
+        assert_eq!(
+            Reference::new(&EnvMap::constant(512, [1.0; 3]).unwrap(), 64).subdivision(),
+            1
+        );
     }
 }

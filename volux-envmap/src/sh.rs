@@ -77,7 +77,11 @@ fn ln_factorial(n: usize) -> f64 {
 
 /// `sin(x) / x`, 1 at 0.
 fn sinc(x: f64) -> f64 {
-    if x.abs() < 1e-8 { 1.0 - x * x / 6.0 } else { x.sin() / x }
+    if x.abs() < 1e-8 {
+        1.0 - x * x / 6.0
+    } else {
+        x.sin() / x
+    }
 }
 
 /// Spherical-harmonic coefficients of `map` up to degree `lmax`, each texel integrated as a
@@ -133,7 +137,11 @@ pub fn analyse(map: &EnvMap, lmax: usize, quad_tol: f64) -> ShCoeffs {
                     let filled = table.eval(c, s, &mut legendre);
                     orders = orders.max(filled);
                     let weight = half * wq * s;
-                    let end = if filled > lmax { n } else { table.index(filled, filled) };
+                    let end = if filled > lmax {
+                        n
+                    } else {
+                        table.index(filled, filled)
+                    };
                     for (r, p) in ring[..end].iter_mut().zip(&legendre[..end]) {
                         *r += weight * p;
                     }
@@ -171,7 +179,10 @@ pub fn analyse(map: &EnvMap, lmax: usize, quad_tol: f64) -> ShCoeffs {
 /// of a `2 height x height` equirectangular grid, row-major from the top row.
 pub fn synthesise(coeffs: &ShCoeffs, kernel: &[f64], height: usize) -> Vec<[f64; 3]> {
     let lmax = kernel.len() - 1;
-    assert!(lmax <= coeffs.lmax(), "kernel degree beyond the analysed band");
+    assert!(
+        lmax <= coeffs.lmax(),
+        "kernel degree beyond the analysed band"
+    );
     let width = 2 * height;
     let table = LegendreTable::new(lmax);
     let n = table.len();
@@ -301,7 +312,8 @@ mod tests {
                     let u = (5.0 + (i as f64 + 0.5) / k as f64) / 16.0;
                     let v = (2.0 + (j as f64 + 0.5) / k as f64) / 8.0;
                     let theta = PI * v;
-                    let area = (2.0 * PI / (16.0 * k as f64)) * (PI / (8.0 * k as f64)) * theta.sin();
+                    let area =
+                        (2.0 * PI / (16.0 * k as f64)) * (PI / (8.0 * k as f64)) * theta.sin();
                     want += ylm(l, m, direction::uv_to_dir(u, v)).conj() * area;
                 }
             }

@@ -8,7 +8,9 @@ use volux_envmap::report::{SplitMix64, compare, random_directions};
 use volux_envmap::{EnvMap, EnvMapError, LightMapSet, PreconvolveOptions, Rgb, io, preconvolve};
 
 fn asset(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../assets/hdri").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../assets/hdri")
+        .join(name)
 }
 
 /// Relative RMS error of a light map's look-up against the reference at `count` random
@@ -24,7 +26,11 @@ fn lookup_error(map: &EnvMap, set: &LightMapSet, n: u32, count: usize) -> f64 {
 fn assert_finite_non_negative(set: &LightMapSet) {
     for lm in set.maps() {
         for c in lm.texels() {
-            assert!(c.iter().all(|v| v.is_finite() && *v >= 0.0), "n={}: {c:?}", lm.exponent());
+            assert!(
+                c.iter().all(|v| v.is_finite() && *v >= 0.0),
+                "n={}: {c:?}",
+                lm.exponent()
+            );
         }
     }
 }
@@ -40,8 +46,11 @@ fn constant_map_stays_constant_for_every_exponent_and_size() {
         let set = preconvolve(&map, &options(&[1, 16, 32, 64, 128, 512])).unwrap();
         for lm in set.maps() {
             for c in lm.texels() {
-                assert!((c[0] - 2.5).abs() < 1e-5 && (c[1] - 1.0).abs() < 1e-5 && c[2] == 0.0,
-                    "{h} n={}: {c:?}", lm.exponent());
+                assert!(
+                    (c[0] - 2.5).abs() < 1e-5 && (c[1] - 1.0).abs() < 1e-5 && c[2] == 0.0,
+                    "{h} n={}: {c:?}",
+                    lm.exponent()
+                );
             }
             for d in random_directions(64, 3) {
                 let v = lm.lookup(d);
@@ -66,7 +75,11 @@ fn all_black_map_gives_black_light_maps() {
 fn map_with_black_lower_half_matches_the_reference() {
     // Black rows are skipped by the analysis; the result must not notice.
     let map = EnvMap::from_fn(64, |d| {
-        if d[1] > 0.0 { [1.0 + d[0] as f32, 0.5, 2.0 * d[1] as f32] } else { [0.0; 3] }
+        if d[1] > 0.0 {
+            [1.0 + d[0] as f32, 0.5, 2.0 * d[1] as f32]
+        } else {
+            [0.0; 3]
+        }
     })
     .unwrap();
     let set = preconvolve(&map, &options(&[1, 32])).unwrap();
@@ -116,14 +129,26 @@ fn taper_suppresses_ringing() {
     // A small bright disc on black: no texel holds enough energy to be summed directly, so the
     // band-limited convolution rings on the black side, less with the taper.
     let centre = direction::uv_to_dir(0.3, 0.4);
-    let map = EnvMap::from_fn(64, |d| if direction::dot(d, centre) > 0.989 { [1e3; 3] } else { [0.0; 3] })
-        .unwrap();
-    let plain = PreconvolveOptions { taper: 0.0, ..options(&[16, 64]) };
+    let map = EnvMap::from_fn(64, |d| {
+        if direction::dot(d, centre) > 0.989 {
+            [1e3; 3]
+        } else {
+            [0.0; 3]
+        }
+    })
+    .unwrap();
+    let plain = PreconvolveOptions {
+        taper: 0.0,
+        ..options(&[16, 64])
+    };
     let a = preconvolve(&map, &plain).unwrap();
     let b = preconvolve(&map, &options(&[16, 64])).unwrap();
     for n in [16, 64] {
         let (ra, rb) = (a.get(n).unwrap().ringing(), b.get(n).unwrap().ringing());
-        assert!(ra > 0.0 && a.get(n).unwrap().clamped() > 0, "n={n}: plain truncation rings below zero");
+        assert!(
+            ra > 0.0 && a.get(n).unwrap().clamped() > 0,
+            "n={n}: plain truncation rings below zero"
+        );
         assert!(rb < 0.5 * ra, "n={n}: tapered {rb:e} vs plain {ra:e}");
     }
     assert_finite_non_negative(&a);
@@ -144,7 +169,9 @@ fn exponents_up_to_512_on_a_real_map() {
 #[test]
 fn tiny_8x4_map_is_integrated_texel_by_texel() {
     let mut rng = SplitMix64::new(5);
-    let texels = (0..32).map(|_| [rng.next_f64() as f32 * 10.0, 1.0, 0.0]).collect();
+    let texels = (0..32)
+        .map(|_| [rng.next_f64() as f32 * 10.0, 1.0, 0.0])
+        .collect();
     let map = EnvMap::new(8, 4, texels).unwrap();
     let exponents = [1, 64, 512];
     let set = preconvolve(&map, &options(&exponents)).unwrap();
@@ -157,10 +184,13 @@ fn tiny_8x4_map_is_integrated_texel_by_texel() {
 
 #[test]
 fn large_4096x2048_map() {
-    let mut map = EnvMap::from_fn(1024, |d| [(1.0 + d[1]) as f32, 0.3, (1.0 + d[0]) as f32]).unwrap();
+    let mut map =
+        EnvMap::from_fn(1024, |d| [(1.0 + d[1]) as f32, 0.3, (1.0 + d[0]) as f32]).unwrap();
     map.set_texel(1500, 300, [5e4; 3]);
     // Upsample by 2 with nearest texels: the same piecewise-constant map at 4096x2048.
-    let big: Vec<Rgb> = (0..2048 * 4096).map(|i| map.texel((i % 4096) / 2, (i / 4096) / 2)).collect();
+    let big: Vec<Rgb> = (0..2048 * 4096)
+        .map(|i| map.texel((i % 4096) / 2, (i / 4096) / 2))
+        .collect();
     let big = EnvMap::new(4096, 2048, big).unwrap();
     drop(map);
     let set = preconvolve(&big, &options(&[1, 64])).unwrap();
@@ -174,7 +204,16 @@ fn large_4096x2048_map() {
 #[test]
 fn every_shipped_map_meets_the_accuracy_target_with_default_options() {
     // Target: all four default lobes within 0.3% relative RMS at the look-up.
-    for name in ["city", "courtyard", "forest", "interior", "night", "studio", "sunrise", "sunset"] {
+    for name in [
+        "city",
+        "courtyard",
+        "forest",
+        "interior",
+        "night",
+        "studio",
+        "sunrise",
+        "sunset",
+    ] {
         let map = io::load(&asset(&format!("{name}.exr"))).unwrap();
         assert_eq!((map.width(), map.height()), (1024, 512));
         let set = preconvolve(&map, &PreconvolveOptions::default()).unwrap();
@@ -200,7 +239,10 @@ fn rotating_the_map_equals_rotating_the_lookup() {
         for d in random_directions(100, 4) {
             let (x, y): (Rgb, Rgb) = (la.lookup_rotated(d, yaw), lb.lookup(d));
             for c in 0..3 {
-                assert!((x[c] - y[c]).abs() <= 2e-3 * peak, "n={n} {d:?}: {x:?} vs {y:?}");
+                assert!(
+                    (x[c] - y[c]).abs() <= 2e-3 * peak,
+                    "n={n} {d:?}: {x:?} vs {y:?}"
+                );
             }
         }
     }
@@ -214,11 +256,20 @@ fn bad_options_are_clear_errors() {
         (options(&[1, 16, 16]), "repeats"),
         (options(&[0]), "exponent 0"),
         (options(&[100_000]), "exponent 100000"),
-        (PreconvolveOptions { tolerance: 0.0, ..options(&[1]) }, "tolerance 0"),
+        (
+            PreconvolveOptions {
+                tolerance: 0.0,
+                ..options(&[1])
+            },
+            "tolerance 0",
+        ),
     ];
     for (opts, what) in cases {
         let e: EnvMapError = preconvolve(&map, &opts).unwrap_err();
-        assert!(e.to_string().contains(what.split(' ').next_back().unwrap()), "{what}: {e}");
+        assert!(
+            e.to_string().contains(what.split(' ').next_back().unwrap()),
+            "{what}: {e}"
+        );
     }
 }
 

@@ -1,0 +1,272 @@
+//! `volux envmap ...`: environment maps and light maps.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use volux_envmap::preconvolve::{
+    DEFAULT_TAPER, DEFAULT_TOLERANCE, Progress, preconvolve_with_progress,
+};
+use volux_envmap::report::{self, BenchSettings};
+use volux_envmap::{EnvMap, MapStats, PreconvolveOptions, io};
+
+/// The HDRIs that ship with volux (CC0, Poly Haven; see assets/hdri/license.txt).
+pub const SHIPPED_HDRIS: [&str; 8] = [
+    "city",
+    "courtyard",
+    "forest",
+    "interior",
+    "night",
+    "studio",
+    "sunrise",
+    "sunset",
+];
+
+#[derive(Debug, Subcommand)]
+pub enum EnvmapCommand {
+    /// Size, luminance range, brightest direction, negative and non-finite texel counts.
+    Info {
+        /// An .exr, .hdr, .png or .jpg equirectangular map.
+        file: PathBuf,
+    },
+    /// Preconvolve a map into cosine-lobe light maps: one EXR per exponent and a PNG contact sheet.
+    Preconvolve(PreconvolveArgs),
+    /// Error against run time of the fast preconvolution, measured against the f64 reference.
+    Bench(BenchArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct PreconvolveArgs {
+    /// Environment map to convolve.
+    pub file: PathBuf,
+    /// Phong exponents, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = volux_envmap::DEFAULT_EXPONENTS)]
+    pub exponents: Vec<u32>,
+    /// Relative RMS error budget per light map (for a point light, the worst case).
+    #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
+    pub tolerance: f64,
+    /// Fraction of each lobe's band tapered against ringing (0 = plain truncation).
+    #[arg(long, default_value_t = DEFAULT_TAPER)]
+    pub taper: f64,
+    /// Rotate the environment by this many degrees about +y first.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    pub yaw: f64,
+    /// Output directory (created if missing).
+    #[arg(long, default_value = "light_maps")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Maps to measure; the shipped HDRIs (assets/hdri) if none is given.
+    pub files: Vec<PathBuf>,
+    /// Phong exponents, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = volux_envmap::DEFAULT_EXPONENTS)]
+    pub exponents: Vec<u32>,
+    /// Tolerances to sweep, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![1e-2, 5e-3, 2e-3, 1e-3, 5e-4])]
+    pub tolerances: Vec<f64>,
+    /// Tapers to sweep, comma-separated.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![0.0, DEFAULT_TAPER])]
+    pub tapers: Vec<f64>,
+    /// Random directions per map and lobe (bilinear look-up error).
+    #[arg(long, default_value_t = 2048)]
+    pub directions: usize,
+    /// Random texel centres per light map (convolution error without look-up).
+    #[arg(long, default_value_t = 256)]
+    pub texels: usize,
+    /// Timing runs per setting (the fastest is reported).
+    #[arg(long, default_value_t = 5)]
+    pub repeats: usize,
+    /// Also write the Markdown report to this file.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+pub fn run(cmd: EnvmapCommand) -> anyhow::Result<()> {
+    match cmd {
+        EnvmapCommand::Info { file } => info(&file),
+        EnvmapCommand::Preconvolve(args) => preconvolve(args),
+        EnvmapCommand::Bench(args) => bench(args),
+    }
+}
+
+fn info(file: &Path) -> anyhow::Result<()> {
+    let raw = io::read_raw(file)?;
+    let s = MapStats::of(raw.width, raw.height, &raw.texels);
+    let d = s.brightest_direction;
+    let (theta, phi) = (
+        d[1].clamp(-1.0, 1.0).acos().to_degrees(),
+        d[0].atan2(d[2]).to_degrees(),
+    );
+    println!("file:               {}", file.display());
+    println!(
+        "size:               {} x {}{}",
+        s.width,
+        s.height,
+        if s.width == 2 * s.height {
+            ""
+        } else {
+            "  (not 2:1: not an equirectangular map)"
+        }
+    );
+    println!(
+        "luminance min/max:  {:.4e} / {:.4e}",
+        s.min_luminance, s.max_luminance
+    );
+    println!(
+        "luminance mean:     {:.4e}  (solid-angle weighted)",
+        s.mean_luminance
+    );
+    println!(
+        "brightest texel:    x={} y={}  direction ({:.3}, {:.3}, {:.3})  polar {:.1} deg, azimuth {:.1} deg",
+        s.brightest_texel.0, s.brightest_texel.1, d[0], d[1], d[2], theta, phi
+    );
+    println!(
+        "negative values:    {}{}",
+        s.negative,
+        if s.negative > 0 {
+            format!("  (most negative {:e}; clamped to 0 on load)", s.min_value)
+        } else {
+            String::new()
+        }
+    );
+    println!(
+        "non-finite values:  {}{}",
+        s.non_finite,
+        if s.non_finite > 0 {
+            "  (the map is rejected on load)"
+        } else {
+            ""
+        }
+    );
+    Ok(())
+}
+
+fn preconvolve(args: PreconvolveArgs) -> anyhow::Result<()> {
+    let mut map = io::load(&args.file)?;
+    if args.yaw != 0.0 {
+        map = map.rotated_yaw(args.yaw.to_radians());
+    }
+    let options = PreconvolveOptions {
+        exponents: args.exponents.clone(),
+        tolerance: args.tolerance,
+        taper: args.taper,
+        ..PreconvolveOptions::default()
+    };
+    options.validate()?;
+    let bar = progress_bar(
+        map.width() * map.height() >= 2048 * 1024,
+        options.exponents.len() + 1,
+    );
+    let start = Instant::now();
+    let set = preconvolve_with_progress(&map, &options, |p| match p {
+        Progress::Analysis => bar.set_message("spherical-harmonic analysis"),
+        Progress::Lobe { exponent, .. } => {
+            bar.inc(1);
+            bar.set_message(format!("light map n={exponent}"));
+        }
+    })?;
+    bar.finish_and_clear();
+    let elapsed = start.elapsed();
+    let written = set.save(&args.out)?;
+    println!(
+        "{} ({}x{}) -> {} light maps in {:.1} ms",
+        args.file.display(),
+        map.width(),
+        map.height(),
+        set.maps().len(),
+        elapsed.as_secs_f64() * 1e3
+    );
+    for (lm, plan) in set.maps().iter().zip(options.plans()) {
+        println!(
+            "  n={:<4} {:>4}x{:<4} band limit {:<4} predicted worst-case error {:.2}%",
+            lm.exponent(),
+            lm.width(),
+            lm.height(),
+            plan.band_limit,
+            100.0 * plan.truncation_error.hypot(plan.interpolation_error)
+        );
+    }
+    for path in written {
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+fn progress_bar(show: bool, steps: usize) -> ProgressBar {
+    if !show {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(steps as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
+            .expect("valid template"),
+    );
+    bar.enable_steady_tick(std::time::Duration::from_millis(100));
+    bar
+}
+
+/// Directory of the shipped HDRIs: next to the executable's workspace in a checkout, or the
+/// working directory's `assets/hdri`.
+pub fn shipped_hdri_dir() -> anyhow::Result<PathBuf> {
+    let candidates = [
+        PathBuf::from("assets/hdri"),
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/hdri"),
+    ];
+    candidates
+        .into_iter()
+        .find(|p| p.join("studio.exr").exists())
+        .context("cannot find the shipped HDRIs (assets/hdri); run from the volux checkout or name the files")
+}
+
+fn bench(args: BenchArgs) -> anyhow::Result<()> {
+    let files: Vec<PathBuf> = if args.files.is_empty() {
+        let dir = shipped_hdri_dir()?;
+        SHIPPED_HDRIS
+            .iter()
+            .map(|n| dir.join(format!("{n}.exr")))
+            .collect()
+    } else {
+        args.files.clone()
+    };
+    if args.directions == 0 {
+        bail!("--directions must be at least 1");
+    }
+    let maps: Vec<(String, EnvMap)> = files
+        .iter()
+        .map(|f| {
+            let name = f
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            Ok((name, io::load(f)?))
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let settings = BenchSettings {
+        exponents: args.exponents,
+        tolerances: args.tolerances,
+        tapers: args.tapers,
+        directions: args.directions,
+        texels: args.texels,
+        repeats: args.repeats,
+    };
+    let start = Instant::now();
+    let report = report::run(&maps, &settings, |line| tracing::info!("{line}"))?;
+    let threads = rayon::current_num_threads();
+    let header = format!(
+        "Measured by `volux envmap bench` with {threads} threads, {} random directions and {} texel centres per light map, best of {} runs; the whole report took {:.0} s.\n\n",
+        settings.directions,
+        settings.texels,
+        settings.repeats,
+        start.elapsed().as_secs_f64()
+    );
+    let text = header + &report.to_markdown();
+    println!("{text}");
+    if let Some(out) = args.out {
+        std::fs::write(&out, &text).with_context(|| format!("writing {}", out.display()))?;
+    }
+    Ok(())
+}

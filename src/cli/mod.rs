@@ -1,0 +1,33 @@
+//! Command definitions (clap derive) and dispatch.
+
+mod backend;
+mod envmap;
+
+use clap::{Parser, Subcommand};
+
+/// Relightable 3D-aware face generation (VoLux-GAN) on Burn.
+#[derive(Debug, Parser)]
+#[command(name = "volux", version, about, propagate_version = true)]
+pub struct Cli {
+    /// Log debug details (or set RUST_LOG).
+    #[arg(short, long, global = true)]
+    pub verbose: bool,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// HDR environment maps: inspect, preconvolve into light maps, measure accuracy.
+    #[command(subcommand)]
+    Envmap(envmap::EnvmapCommand),
+    /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
+    Backend(backend::BackendArgs),
+}
+
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Envmap(cmd) => envmap::run(cmd),
+        Command::Backend(args) => backend::run(args),
+    }
+}

@@ -1,0 +1,131 @@
+//! End-to-end tests of the `volux` binary.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn volux(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_volux"))
+        .args(args)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("run volux")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn asset(name: &str) -> String {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("assets/hdri")
+        .join(name)
+        .display()
+        .to_string()
+}
+
+#[test]
+fn envmap_info_describes_a_shipped_map() {
+    let o = volux(&["envmap", "info", &asset("sunrise.exr")]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("1024 x 512"), "{t}");
+    assert!(t.contains("brightest texel"), "{t}");
+    assert!(t.contains("negative values"), "{t}");
+}
+
+#[test]
+fn envmap_preconvolve_writes_one_exr_per_lobe_and_a_contact_sheet() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("lm");
+    let o = volux(&[
+        "envmap",
+        "preconvolve",
+        &asset("studio.exr"),
+        "--exponents",
+        "1,16,64",
+        "--yaw",
+        "-30",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    for f in [
+        "light_n001.exr",
+        "light_n016.exr",
+        "light_n064.exr",
+        "light_maps.png",
+    ] {
+        assert!(out.join(f).exists(), "{f} missing: {}", text(&o));
+    }
+    let lm = volux_envmap::io::read_raw(&out.join("light_n001.exr")).unwrap();
+    assert_eq!(lm.width, 2 * lm.height);
+}
+
+#[test]
+fn bad_inputs_fail_with_a_message_naming_the_problem() {
+    let dir = tempfile::tempdir().unwrap();
+    let bad = dir.path().join("broken.exr");
+    std::fs::write(&bad, b"\x76\x2f\x31\x01 truncated").unwrap();
+    let o = volux(&["envmap", "info", bad.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("broken.exr"), "{}", text(&o));
+
+    let o = volux(&[
+        "envmap",
+        "preconvolve",
+        &asset("night.exr"),
+        "--exponents",
+        "0,16",
+    ]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("exponent 0"), "{}", text(&o));
+
+    let o = volux(&["envmap", "preconvolve", "no/such/file.hdr"]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("no/such/file.hdr"), "{}", text(&o));
+}
+
+#[test]
+fn envmap_bench_prints_error_and_time_tables() {
+    let dir = tempfile::tempdir().unwrap();
+    let small = dir.path().join("small.exr");
+    let map = volux_envmap::io::load(Path::new(&asset("forest.exr")))
+        .unwrap()
+        .downsampled(8);
+    volux_envmap::io::save_envmap_exr(&small, &map).unwrap();
+    let report = dir.path().join("report.md");
+    let o = volux(&[
+        "envmap",
+        "bench",
+        small.to_str().unwrap(),
+        "--exponents",
+        "1,32",
+        "--tolerances",
+        "1e-2,1e-3",
+        "--tapers",
+        "0.5",
+        "--directions",
+        "64",
+        "--texels",
+        "16",
+        "--repeats",
+        "1",
+        "--out",
+        report.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let md = std::fs::read_to_string(report).unwrap();
+    assert!(md.contains("| small | 32 | 1e-3 | 0.5 |"), "{md}");
+    assert!(md.contains("rel RMS look-up"), "{md}");
+}
+
+#[test]
+fn backend_check_runs_on_the_cpu() {
+    let o = volux(&["backend", "--backend", "cpu"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("cpu: ok"), "{}", text(&o));
+}
