@@ -29,7 +29,16 @@ fn asset(name: &str) -> String {
 
 #[test]
 fn envmap_info_describes_a_shipped_map() {
-    let o = volux(&["envmap", "info", &asset("sunrise.exr")]);
+    let dir = tempfile::tempdir().unwrap();
+    let preview = dir.path().join("preview.png");
+    let o = volux(&[
+        "envmap",
+        "info",
+        &asset("sunrise.exr"),
+        "--preview",
+        preview.to_str().unwrap(),
+    ]);
+    assert!(preview.exists());
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert!(t.contains("1024 x 512"), "{t}");

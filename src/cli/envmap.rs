@@ -30,6 +30,9 @@ pub enum EnvmapCommand {
     Info {
         /// An .exr, .hdr, .png or .jpg equirectangular map.
         file: PathBuf,
+        /// Also write a tone-mapped PNG preview of the map here.
+        #[arg(long)]
+        preview: Option<PathBuf>,
     },
     /// Preconvolve a map into cosine-lobe light maps: one EXR per exponent and a PNG contact sheet.
     Preconvolve(PreconvolveArgs),
@@ -87,13 +90,13 @@ pub struct BenchArgs {
 
 pub fn run(cmd: EnvmapCommand) -> anyhow::Result<()> {
     match cmd {
-        EnvmapCommand::Info { file } => info(&file),
+        EnvmapCommand::Info { file, preview } => info(&file, preview.as_deref()),
         EnvmapCommand::Preconvolve(args) => preconvolve(args),
         EnvmapCommand::Bench(args) => bench(args),
     }
 }
 
-fn info(file: &Path) -> anyhow::Result<()> {
+fn info(file: &Path, preview: Option<&Path>) -> anyhow::Result<()> {
     let raw = io::read_raw(file)?;
     let s = MapStats::of(raw.width, raw.height, &raw.texels);
     let d = s.brightest_direction;
@@ -142,6 +145,10 @@ fn info(file: &Path) -> anyhow::Result<()> {
             ""
         }
     );
+    if let Some(path) = preview {
+        io::save_preview_png(path, &io::load(file)?)?;
+        println!("wrote {}", path.display());
+    }
     Ok(())
 }
 

@@ -28,32 +28,35 @@ pub const MAX_BRIGHT_TEXELS: usize = 64;
 /// what the plans can band-limit within `tolerance`, brightest first.
 pub fn select(map: &EnvMap, plans: &[LobePlan], tolerance: f64) -> Vec<(usize, usize)> {
     let (w, h) = (map.width(), map.height());
-    let energy =
-        |x: usize, y: usize| luminance(map.texel(x, y)) * direction::row_solid_angle(y, w, h);
-    let total: f64 = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| energy(x, y))
-        .sum();
+    let omega: Vec<f64> = (0..h).map(|y| direction::row_solid_angle(y, w, h)).collect();
+    let row_luminance: Vec<f64> = (0..h)
+        .map(|y| map.row(y).iter().map(|c| luminance(*c)).sum())
+        .collect();
+    let total: f64 = row_luminance.iter().zip(&omega).map(|(l, o)| l * o).sum();
     if total <= 0.0 {
         return Vec::new();
     }
     // A texel of energy E lights its lobe's peak with about E / max(Omega, 2 pi / (n + 1))
     // (a point inside the lobe, or a patch wider than it); the band limit rings at r of that
     // peak. Texels whose ringing would exceed the tolerance relative to the average light,
-    // total / (4 pi), in any lobe are summed directly.
+    // total / (4 pi), in any lobe are summed directly. Per row, that is a luminance threshold.
     let sky = tolerance * total / (4.0 * std::f64::consts::PI);
-    let mut bright: Vec<(f64, usize, usize)> = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .filter_map(|(x, y)| {
-            let e = energy(x, y);
-            let omega = direction::row_solid_angle(y, w, h);
-            let rings = plans.iter().any(|p| {
+    let mut bright: Vec<(f64, usize, usize)> = Vec::new();
+    for (y, &omega) in omega.iter().enumerate() {
+        let threshold = plans
+            .iter()
+            .map(|p| {
                 let spread = omega.max(std::f64::consts::TAU / (f64::from(p.exponent) + 1.0));
-                p.ringing * e / spread > sky
-            });
-            rings.then_some((e, x, y))
-        })
-        .collect();
+                sky * spread / (p.ringing.max(1e-12) * omega)
+            })
+            .fold(f64::INFINITY, f64::min);
+        for (x, c) in map.row(y).iter().enumerate() {
+            let lum = luminance(*c);
+            if lum > threshold {
+                bright.push((lum * omega, x, y));
+            }
+        }
+    }
     bright.sort_by(|a, b| b.0.total_cmp(&a.0));
     bright.truncate(MAX_BRIGHT_TEXELS);
     bright.into_iter().map(|(_, x, y)| (x, y)).collect()

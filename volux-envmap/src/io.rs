@@ -179,11 +179,7 @@ pub fn write_atomically(
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     // Keep the extension last: encoders pick the format from it.
-    let tmp: PathBuf = path.with_file_name(format!(
-        ".{}.{}.tmp.{file_name}",
-        file_name,
-        std::process::id()
-    ));
+    let tmp: PathBuf = path.with_file_name(format!(".tmp.{}.{file_name}", std::process::id()));
     let result = write(&tmp).and_then(|()| {
         fs::rename(&tmp, path).map_err(|source| EnvMapError::Io {
             path: path.to_path_buf(),
