@@ -28,7 +28,9 @@ pub const MAX_BRIGHT_TEXELS: usize = 64;
 /// what the plans can band-limit within `tolerance`, brightest first.
 pub fn select(map: &EnvMap, plans: &[LobePlan], tolerance: f64) -> Vec<(usize, usize)> {
     let (w, h) = (map.width(), map.height());
-    let omega: Vec<f64> = (0..h).map(|y| direction::row_solid_angle(y, w, h)).collect();
+    let omega: Vec<f64> = (0..h)
+        .map(|y| direction::row_solid_angle(y, w, h))
+        .collect();
     let row_luminance: Vec<f64> = (0..h)
         .map(|y| map.row(y).iter().map(|c| luminance(*c)).sum())
         .collect();
@@ -76,8 +78,11 @@ fn subdivision(height: usize, exponent: u32) -> usize {
     ((4.0 * texel / lobe_width(exponent)).ceil() as usize).max(1)
 }
 
+/// A sub-cell: centre direction and exact solid angle.
+type SubCell = ([f64; 3], f64);
+
 /// Sub-cells of one texel: centre direction and exact solid angle.
-fn sub_cells(x: usize, y: usize, w: usize, h: usize, exponent: u32) -> Vec<([f64; 3], f64)> {
+fn sub_cells(x: usize, y: usize, w: usize, h: usize, exponent: u32) -> Vec<SubCell> {
     let s = subdivision(h, exponent);
     let (sw, sh) = (w * s, h * s);
     let mut cells = Vec::with_capacity(s * s);
@@ -101,7 +106,7 @@ pub fn add_direct(
 ) {
     let (w, h) = (map.width(), map.height());
     let norm = (f64::from(exponent) + 1.0) / std::f64::consts::TAU;
-    let sources: Vec<(Rgb, Vec<([f64; 3], f64)>)> = texels
+    let sources: Vec<(Rgb, Vec<SubCell>)> = texels
         .iter()
         .map(|&(x, y)| (map.texel(x, y), sub_cells(x, y, w, h, exponent)))
         .collect();

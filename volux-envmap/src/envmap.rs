@@ -159,7 +159,7 @@ impl EnvMap {
     /// their exact solid angle, so the total energy is kept). `factor` must divide the height.
     pub fn downsampled(&self, factor: usize) -> EnvMap {
         assert!(
-            factor >= 1 && self.height % factor == 0,
+            factor >= 1 && self.height.is_multiple_of(factor),
             "factor must divide the height"
         );
         let (w, h) = (self.width / factor, self.height / factor);

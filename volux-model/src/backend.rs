@@ -112,14 +112,14 @@ pub fn self_check(kind: BackendKind) -> Result<SelfCheck, BackendError> {
     let forward_error = max_abs_diff(&value, &value_ref);
     let gradient_error = max_abs_diff(&grad, &grad_ref);
     let tolerance = 1e-4;
-    if !(forward_error <= tolerance) {
+    if forward_error.is_nan() || forward_error > tolerance {
         return Err(BackendError::Mismatch {
             backend: kind,
             what: "forward value",
             error: forward_error,
         });
     }
-    if !(gradient_error <= tolerance) {
+    if gradient_error.is_nan() || gradient_error > tolerance {
         return Err(BackendError::Mismatch {
             backend: kind,
             what: "input gradient",
@@ -161,11 +161,21 @@ fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
         .expect("f32 tensor data")
 }
 
+/// Largest absolute difference; NaN if any value is NaN (so garbage never reads as agreement).
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f64 {
+    if a.len() != b.len() {
+        return f64::INFINITY;
+    }
     a.iter()
         .zip(b)
         .map(|(x, y)| (f64::from(*x) - f64::from(*y)).abs())
-        .fold(0.0, f64::max)
+        .fold(0.0, |m, d| {
+            if m.is_nan() || d.is_nan() {
+                f64::NAN
+            } else {
+                m.max(d)
+            }
+        })
 }
 
 #[cfg(test)]
@@ -202,6 +212,14 @@ mod tests {
                 assert!((g - f64::from(grad[r * k + c])).abs() < 1e-4, "({r},{c})");
             }
         }
+    }
+
+    #[test]
+    fn nan_never_reads_as_agreement() {
+        assert!(max_abs_diff(&[1.0, f32::NAN], &[1.0, 2.0]).is_nan());
+        assert!(max_abs_diff(&[f32::NAN, 1.0], &[1.0, 1.0]).is_nan());
+        assert_eq!(max_abs_diff(&[1.0], &[1.0, 2.0]), f64::INFINITY);
+        assert_eq!(max_abs_diff(&[1.0, 3.0], &[1.5, 2.0]), 1.0);
     }
 
     #[cfg(not(feature = "wgpu"))]
