@@ -135,7 +135,10 @@ impl LightMap {
     /// in direction `d`. Exact: rotating the environment and convolving commute, so this is the
     /// look-up at the direction rotated back.
     pub fn lookup_rotated(&self, d: Dir, yaw: f64) -> Rgb {
-        self.lookup(direction::rotate_yaw(d, -yaw))
+        // Rotating the direction back by `yaw` subtracts `yaw / 2 pi` from `u` (and, on the
+        // vertical axis, keeps the convention u = 1/2 of `dir_to_uv` for the unrotated map).
+        let (u, v) = direction::dir_to_uv(d);
+        self.lookup_uv(u - yaw / std::f64::consts::TAU, v)
     }
 
     /// The map extended by one texel on every side, `(height + 2) x (width + 2)` row-major:

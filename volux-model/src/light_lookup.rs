@@ -1,0 +1,276 @@
+//! Light-map look-up on tensors (paper section 3.2, eq. 2): `D = L_1(n)` and
+//! `S = sum_i w_i L_{n_i}(r)` sample preconvolved light maps at directions the network
+//! computes, so the look-up must be differentiable with respect to the direction.
+//!
+//! Each batch element has its own light maps (its own HDRI) and its own yaw rotation. The maps
+//! are the padded arrays of [`volux_envmap::LightMap::padded`], sampled with Burn's bilinear
+//! `grid_sample_2d` (`align_corners = true`) at padded pixel `(u W + 0.5, v H + 0.5)`, which is
+//! exactly [`volux_envmap::LightMap::lookup_rotated`]: wrapped in azimuth, continuous over the
+//! poles.
+
+use std::f32::consts::PI;
+
+use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
+use burn::tensor::{Device, Tensor, TensorData};
+use volux_envmap::LightMap;
+
+/// Keeps `atan2` and `sqrt` differentiable exactly at the poles, where the azimuth is
+/// undefined (it moves `theta` by at most 1e-6 rad there).
+const POLE_EPS: f32 = 1e-12;
+
+/// One light map (one Phong exponent) per batch element, on a device.
+#[derive(Clone, Debug)]
+pub struct LightMapBatch {
+    /// `[batch, 3, height + 2, width + 2]`, the padded layout.
+    padded: Tensor<4>,
+    width: usize,
+    height: usize,
+}
+
+/// Why a batch of light maps cannot be built.
+#[derive(Debug, thiserror::Error)]
+pub enum LightLookupError {
+    #[error("a light-map batch needs at least one map")]
+    Empty,
+    #[error(
+        "light maps in one batch must share exponent and size: map {index} is n={exponent} {width}x{height}, map 0 is n={exponent0} {width0}x{height0}"
+    )]
+    Mismatch {
+        index: usize,
+        exponent: u32,
+        width: usize,
+        height: usize,
+        exponent0: u32,
+        width0: usize,
+        height0: usize,
+    },
+}
+
+impl LightMapBatch {
+    /// Stacks `maps` (one per batch element, same exponent and size) on `device`.
+    pub fn new(maps: &[&LightMap], device: &Device) -> Result<Self, LightLookupError> {
+        let first = maps.first().ok_or(LightLookupError::Empty)?;
+        let (w, h) = (first.width(), first.height());
+        for (index, m) in maps.iter().enumerate() {
+            if m.width() != w || m.height() != h || m.exponent() != first.exponent() {
+                return Err(LightLookupError::Mismatch {
+                    index,
+                    exponent: m.exponent(),
+                    width: m.width(),
+                    height: m.height(),
+                    exponent0: first.exponent(),
+                    width0: w,
+                    height0: h,
+                });
+            }
+        }
+        let (pw, ph) = (w + 2, h + 2);
+        let mut data = Vec::with_capacity(maps.len() * 3 * pw * ph);
+        for m in maps {
+            let padded = m.padded();
+            for c in 0..3 {
+                data.extend(padded.iter().map(|t| t[c]));
+            }
+        }
+        let padded = Tensor::<4>::from_data(TensorData::new(data, [maps.len(), 3, ph, pw]), device);
+        Ok(Self {
+            padded,
+            width: w,
+            height: h,
+        })
+    }
+
+    /// Batch size.
+    pub fn batch(&self) -> usize {
+        self.padded.dims()[0]
+    }
+
+    /// `L_n` at `dirs` (`[batch, points, 3]`, need not be normalised) of each element's
+    /// environment rotated by `yaw[b]` radians about +y (`None`: no rotation). Returns
+    /// `[batch, points, 3]`, differentiable with respect to `dirs` (and `yaw`).
+    pub fn lookup(&self, dirs: Tensor<3>, yaw: Option<Tensor<1>>) -> Tensor<3> {
+        let [b, n, _] = dirs.dims();
+        let x = dirs.clone().narrow(2, 0, 1);
+        let y = dirs.clone().narrow(2, 1, 1);
+        let z = dirs.narrow(2, 2, 1);
+        let r2 = x.clone() * x.clone() + z.clone() * z.clone();
+        // On the vertical axis the azimuth is undefined: use 0 (u = 1/2, as the CPU look-up
+        // does) through inputs whose gradient is defined.
+        let axis = r2.clone().lower_elem(POLE_EPS);
+        let phi = x.mask_fill(axis.clone(), 0.0).atan2(z.mask_fill(axis, 1.0));
+        let u = phi.add_scalar(PI).div_scalar(2.0 * PI);
+        let u = match yaw {
+            Some(yaw) => u - yaw.reshape([b, 1, 1]).div_scalar(2.0 * PI),
+            None => u,
+        };
+        let u = u.clone() - u.floor().detach(); // wrap to [0, 1)
+        let v = r2.add_scalar(POLE_EPS).sqrt().atan2(y).div_scalar(PI);
+        let (w, h) = (self.width as f32, self.height as f32);
+        let gx = (u.mul_scalar(w).add_scalar(0.5))
+            .mul_scalar(2.0 / (w + 1.0))
+            .sub_scalar(1.0);
+        let gy = (v.mul_scalar(h).add_scalar(0.5))
+            .mul_scalar(2.0 / (h + 1.0))
+            .sub_scalar(1.0);
+        let grid = Tensor::cat(vec![gx, gy], 2).reshape([b, n, 1, 2]);
+        let options = GridSampleOptions::new(InterpolateMode::Bilinear)
+            .with_padding_mode(GridSamplePaddingMode::Border)
+            .with_align_corners(true);
+        let sampled = self.padded.clone().grid_sample_2d(grid, options); // [b, 3, n, 1]
+        sampled.reshape([b, 3, n]).swap_dims(1, 2)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use volux_envmap::direction;
+    use volux_envmap::report::{SplitMix64, random_directions};
+
+    fn map(seed: u64, exponent: u32, h: usize) -> LightMap {
+        let mut rng = SplitMix64::new(seed);
+        let texels = (0..2 * h * h)
+            .map(|_| std::array::from_fn(|_| (rng.next_f64() * 10.0) as f32))
+            .collect();
+        LightMap::new(exponent, 2 * h, h, texels)
+    }
+
+    /// Directions that stress the layout: random, near the seam, at and near the poles.
+    fn directions() -> Vec<direction::Dir> {
+        let mut d = random_directions(200, 3);
+        d.extend([
+            [1e-7, 0.3, -1.0],
+            [-1e-7, -0.2, -1.0],
+            [0.0, 0.0, -1.0],
+            [0.0, 1.0, 0.0],
+            [0.0, -2.0, 0.0],
+            [1e-4, 1.0, 2e-4],
+            [-3e-4, -1.0, 1e-4],
+            [0.5, 0.1, -0.0001],
+        ]);
+        d
+    }
+
+    fn to_tensor(dirs: &[direction::Dir], batch: usize, device: &Device) -> Tensor<3> {
+        let data: Vec<f32> = (0..batch)
+            .flat_map(|_| dirs.iter().flat_map(|d| d.map(|v| v as f32)))
+            .collect();
+        Tensor::from_data(TensorData::new(data, [batch, dirs.len(), 3]), device)
+    }
+
+    #[test]
+    fn agrees_with_the_cpu_lookup_per_batch_element_and_yaw() {
+        check_against_cpu_lookup(&Device::flex());
+    }
+
+    /// The GPU path; CI runs it on a software Vulkan driver.
+    #[cfg(feature = "wgpu")]
+    #[test]
+    fn wgpu_agrees_with_the_cpu_lookup() {
+        check_against_cpu_lookup(&crate::backend::BackendKind::Wgpu.device().unwrap());
+    }
+
+    fn check_against_cpu_lookup(device: &Device) {
+        let device = device.clone();
+        let maps = [map(1, 16, 8), map(2, 16, 8)];
+        let batch = LightMapBatch::new(&[&maps[0], &maps[1]], &device).unwrap();
+        let dirs = directions();
+        let yaw = [0.0f32, 2.3];
+        let out = batch.lookup(
+            to_tensor(&dirs, 2, &device),
+            Some(Tensor::from_floats(yaw.as_slice(), &device)),
+        );
+        let out: Vec<f32> = out.into_data().convert::<f32>().try_to_vec().unwrap();
+        for b in 0..2 {
+            for (i, d) in dirs.iter().enumerate() {
+                // Rotate the direction in f32 the way the tensor path does.
+                let want = maps[b].lookup_rotated(*d, f64::from(yaw[b]));
+                for c in 0..3 {
+                    let got = out[(b * dirs.len() + i) * 3 + c];
+                    assert!(
+                        (got - want[c]).abs() <= 1e-4 * (1.0 + want[c].abs()),
+                        "b={b} d={d:?} c={c}: {got} vs {}",
+                        want[c]
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn gradient_with_respect_to_direction_matches_finite_differences() {
+        let device = Device::flex().autodiff();
+        let lm = map(7, 1, 16);
+        let batch = LightMapBatch::new(&[&lm], &device).unwrap();
+        let dirs = random_directions(64, 11);
+        let weights = [0.3f64, -1.2, 0.7];
+        let d = to_tensor(&dirs, 1, &device).require_grad();
+        let w = Tensor::<1>::from_floats([0.3f32, -1.2, 0.7], &device).reshape([1, 1, 3]);
+        let loss = (batch.lookup(d.clone(), None) * w).sum();
+        let grads = loss.backward();
+        let g: Vec<f32> = d
+            .grad(&grads)
+            .unwrap()
+            .into_data()
+            .convert::<f32>()
+            .try_to_vec()
+            .unwrap();
+        let f = |p: direction::Dir| -> f64 {
+            let v = lm.lookup(p);
+            (0..3).map(|c| weights[c] * f64::from(v[c])).sum()
+        };
+        let h = 1e-3; // far below a texel (0.2 rad), far above f32 round-off
+        let mut checked = 0;
+        for (i, p) in dirs.iter().enumerate() {
+            for k in 0..3 {
+                let (mut a, mut b) = (*p, *p);
+                a[k] += h;
+                b[k] -= h;
+                // One-sided slopes disagree where the step crosses a texel edge (bilinear kink).
+                let (fa, f0, fb) = (f(a), f(*p), f(b));
+                if ((fa - f0) - (f0 - fb)).abs() > 2e-2 * (fa - fb).abs().max(1e-3) {
+                    continue;
+                }
+                let fd = (fa - fb) / (2.0 * h);
+                let ad = f64::from(g[i * 3 + k]);
+                assert!(
+                    (fd - ad).abs() <= 2e-2 * (1.0 + fd.abs()),
+                    "dir {i} axis {k}: {ad} vs {fd}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 150, "only {checked} smooth samples");
+    }
+
+    #[test]
+    fn gradients_are_finite_at_the_poles_and_the_seam() {
+        let device = Device::flex().autodiff();
+        let lm = map(5, 16, 8);
+        let batch = LightMapBatch::new(&[&lm], &device).unwrap();
+        let d = to_tensor(
+            &[[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]],
+            1,
+            &device,
+        )
+        .require_grad();
+        let grads = batch.lookup(d.clone(), None).sum().backward();
+        let g: Vec<f32> = d
+            .grad(&grads)
+            .unwrap()
+            .into_data()
+            .convert::<f32>()
+            .try_to_vec()
+            .unwrap();
+        assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
+    }
+
+    #[test]
+    fn mismatched_maps_are_refused() {
+        let device = Device::flex();
+        let (a, b) = (map(1, 16, 8), map(2, 16, 4));
+        let e = LightMapBatch::new(&[&a, &b], &device).unwrap_err();
+        assert!(e.to_string().contains("map 1"), "{e}");
+        assert!(LightMapBatch::new(&[], &device).is_err());
+    }
+}
