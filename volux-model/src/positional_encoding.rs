@@ -1,0 +1,105 @@
+//! Fourier positional encoding of 3D points (NeRF; paper section 3.2): `x -> [x, sin(2^k pi x),
+//! cos(2^k pi x)]` for `k = 0..frequencies`, the NeIIF's input.
+
+use std::f64::consts::PI;
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::tensor::Tensor;
+
+/// Configuration of a [`PositionalEncoding`].
+#[derive(Config, Debug)]
+pub struct PositionalEncodingConfig {
+    /// Number of octaves `F` (10 in the paper).
+    #[config(default = 10)]
+    pub frequencies: usize,
+    /// Whether the raw coordinates come first in the output.
+    #[config(default = true)]
+    pub include_input: bool,
+}
+
+/// The encoding; it has no parameters.
+#[derive(Module, Debug)]
+pub struct PositionalEncoding {
+    pub frequencies: usize,
+    pub include_input: bool,
+}
+
+impl PositionalEncodingConfig {
+    pub fn init(&self) -> PositionalEncoding {
+        PositionalEncoding {
+            frequencies: self.frequencies,
+            include_input: self.include_input,
+        }
+    }
+}
+
+impl PositionalEncoding {
+    /// Output features per input coordinate triple: `3 (include_input) + 6 F`.
+    pub fn output_dim(&self) -> usize {
+        3 * usize::from(self.include_input) + 6 * self.frequencies
+    }
+
+    /// `[points, 3] -> [points, output_dim]`, laid out as `[x, sin(pi x), cos(pi x),
+    /// sin(2 pi x), cos(2 pi x), ...]` with each block holding the three coordinates.
+    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
+        let mut parts = Vec::with_capacity(1 + 2 * self.frequencies);
+        if self.include_input {
+            parts.push(x.clone());
+        }
+        for k in 0..self.frequencies {
+            let scaled = x.clone().mul_scalar(PI * 2f64.powi(k as i32));
+            parts.push(scaled.clone().sin());
+            parts.push(scaled.cos());
+        }
+        Tensor::cat(parts, 1)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::{Device, TensorData};
+
+    #[test]
+    fn matches_the_formula_in_f64() {
+        let device = Device::flex();
+        let enc = PositionalEncodingConfig::new().init();
+        assert_eq!(enc.output_dim(), 63);
+        let pts = [[0.1f64, -0.7, 0.35], [0.9, 0.0, -0.05]];
+        let data: Vec<f32> = pts.iter().flatten().map(|v| *v as f32).collect();
+        let out = enc.forward(Tensor::<2>::from_data(
+            TensorData::new(data, [2, 3]),
+            &device,
+        ));
+        assert_eq!(out.dims(), [2, 63]);
+        let out: Vec<f32> = out.into_data().convert::<f32>().try_to_vec().unwrap();
+        for (p, x) in pts.iter().enumerate() {
+            let mut want: Vec<f64> = x.to_vec();
+            for k in 0..10 {
+                let f = PI * 2f64.powi(k);
+                want.extend(x.iter().map(|v| (f * v).sin()));
+                want.extend(x.iter().map(|v| (f * v).cos()));
+            }
+            for (i, w) in want.iter().enumerate() {
+                // f32 arguments up to 512 pi: absolute error grows with the octave.
+                let got = f64::from(out[p * 63 + i]);
+                assert!(
+                    (got - w).abs() < 2e-4,
+                    "point {p} feature {i}: {got} vs {w}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn can_leave_out_the_raw_input() {
+        let enc = PositionalEncodingConfig::new()
+            .with_frequencies(4)
+            .with_include_input(false)
+            .init();
+        assert_eq!(enc.output_dim(), 24);
+        let out = enc.forward(Tensor::<2>::zeros([5, 3], &Device::flex()));
+        assert_eq!(out.dims(), [5, 24]);
+    }
+}
