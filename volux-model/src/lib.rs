@@ -1,8 +1,9 @@
 //! VoLux-GAN's networks as Burn modules. Today: backend selection ([`backend`]), the
 //! differentiable light-map look-up ([`light_lookup`]), equalized-learning-rate layers
 //! ([`equalized`]), the mapping network ([`mapping`]), the positional encoding
-//! ([`positional_encoding`]) and compositing along rays ([`ray_marching`]); the NeIIF, ray
-//! sampling, upsampler, relighting network and discriminators follow.
+//! ([`positional_encoding`]), camera rays and stratified samples ([`ray_sampling`]) and
+//! compositing along rays ([`ray_marching`]); the NeIIF, importance sampling, upsampler,
+//! relighting network and discriminators follow.
 
 pub mod backend;
 pub mod equalized;
@@ -10,3 +11,4 @@ pub mod light_lookup;
 pub mod mapping;
 pub mod positional_encoding;
 pub mod ray_marching;
+pub mod ray_sampling;

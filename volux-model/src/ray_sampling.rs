@@ -1,0 +1,180 @@
+//! Camera rays and stratified samples along them (DESIGN.md, "Conventions"; EG3D's set-up).
+//!
+//! A pinhole camera on a sphere of radius 2.7 looks at the origin with a vertical field of view
+//! of 18.84 degrees; rays run from `t = 2.25` to `t = 3.3`. Pose `(yaw, pitch)`: yaw 0, pitch 0
+//! sits at +z looking along -z (at the face), with +x to the right of the image and +y up;
+//! positive yaw turns the camera about +y (right-handed, towards +x), positive pitch raises it
+//! (it looks down). Pixel `(x, y)` counts from the top-left corner; rays go through pixel
+//! centres. This file knows nothing of networks.
+
+use burn::config::Config;
+use burn::tensor::{Device, Distribution, Tensor, TensorData};
+
+/// Camera intrinsics and ray bounds.
+#[derive(Config, Debug, PartialEq)]
+pub struct CameraConfig {
+    /// Distance of the camera from the origin.
+    #[config(default = 2.7)]
+    pub radius: f64,
+    /// Vertical field of view, degrees.
+    #[config(default = 18.84)]
+    pub fov_degrees: f64,
+    /// Ray start.
+    #[config(default = 2.25)]
+    pub near: f64,
+    /// Ray end.
+    #[config(default = 3.3)]
+    pub far: f64,
+}
+
+/// Camera position for a pose.
+pub fn camera_position(config: &CameraConfig, yaw: f64, pitch: f64) -> [f64; 3] {
+    let r = config.radius;
+    [
+        r * yaw.sin() * pitch.cos(),
+        r * pitch.sin(),
+        r * yaw.cos() * pitch.cos(),
+    ]
+}
+
+/// Rays of a `width x height` image at pose `(yaw, pitch)`: origins and unit directions,
+/// `[height * width, 3]` each, row-major from the top-left pixel. Built in f64 on the host.
+pub fn camera_rays(
+    config: &CameraConfig,
+    yaw: f64,
+    pitch: f64,
+    width: usize,
+    height: usize,
+) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
+    let o = camera_position(config, yaw, pitch);
+    let norm = |v: [f64; 3]| {
+        let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        v.map(|c| c / l)
+    };
+    let cross = |a: [f64; 3], b: [f64; 3]| {
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    };
+    let forward = norm(o.map(|c| -c));
+    let right = norm(cross(forward, [0.0, 1.0, 0.0]));
+    let up = cross(right, forward);
+    let tan = (config.fov_degrees.to_radians() / 2.0).tan();
+    let aspect = width as f64 / height as f64;
+    let mut dirs = Vec::with_capacity(width * height);
+    for y in 0..height {
+        for x in 0..width {
+            let sx = (2.0 * (x as f64 + 0.5) / width as f64 - 1.0) * tan * aspect;
+            let sy = (1.0 - 2.0 * (y as f64 + 0.5) / height as f64) * tan;
+            dirs.push(norm(std::array::from_fn(|k| {
+                forward[k] + sx * right[k] + sy * up[k]
+            })));
+        }
+    }
+    (vec![o; width * height], dirs)
+}
+
+/// Stratified sample depths `[rays, samples]` between `near` and `far`, one per equal bin,
+/// jittered uniformly inside it (`jitter = false`: bin centres), and the segment lengths
+/// `delta` that compositing needs (each sample's distance to the next, the last to `far`).
+pub fn stratified_samples(
+    config: &CameraConfig,
+    rays: usize,
+    samples: usize,
+    jitter: bool,
+    device: &Device,
+) -> (Tensor<2>, Tensor<2>) {
+    assert!(samples >= 1, "at least one sample per ray");
+    let bin = ((config.far - config.near) / samples as f64) as f32;
+    let starts: Vec<f32> = (0..samples)
+        .map(|i| (config.near + i as f64 * (config.far - config.near) / samples as f64) as f32)
+        .collect();
+    let starts = Tensor::<1>::from_data(TensorData::new(starts, [samples]), device)
+        .reshape([1, samples])
+        .expand([rays, samples]);
+    let offset = if jitter {
+        Tensor::<2>::random([rays, samples], Distribution::Uniform(0.0, 1.0), device)
+    } else {
+        Tensor::<2>::full([rays, samples], 0.5, device)
+    };
+    let t = starts + offset.mul_scalar(bin);
+    let end = Tensor::<2>::full([rays, 1], config.far as f32, device);
+    let next = if samples > 1 {
+        Tensor::cat(vec![t.clone().narrow(1, 1, samples - 1), end], 1)
+    } else {
+        end
+    };
+    let delta = next - t.clone();
+    (t, delta)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: [f64; 3], b: [f64; 3]) -> bool {
+        (0..3).all(|k| (a[k] - b[k]).abs() < 1e-12)
+    }
+
+    #[test]
+    fn frontal_camera_looks_along_minus_z_with_x_right_and_y_up() {
+        let cfg = CameraConfig::new();
+        let (o, d) = camera_rays(&cfg, 0.0, 0.0, 2, 2);
+        assert!(close(o[0], [0.0, 0.0, 2.7]));
+        // Top-left pixel looks left (-x) and up (+y).
+        assert!(d[0][0] < 0.0 && d[0][1] > 0.0 && d[0][2] < 0.0);
+        assert!(d[3][0] > 0.0 && d[3][1] < 0.0);
+        // The vertical field of view: rays through the top and bottom edges span 18.84 deg.
+        let (_, col) = camera_rays(&cfg, 0.0, 0.0, 1, 1000);
+        let top = col[0][1].atan2(-col[0][2]);
+        let bottom = col[999][1].atan2(-col[999][2]);
+        assert!(((top - bottom).to_degrees() - 18.84).abs() < 0.05);
+    }
+
+    #[test]
+    fn yaw_and_pitch_move_the_camera_around_the_head() {
+        let cfg = CameraConfig::new();
+        let p = camera_position(&cfg, std::f64::consts::FRAC_PI_2, 0.0);
+        assert!(close(
+            p,
+            [2.7, 0.0, 2.7 * std::f64::consts::FRAC_PI_2.cos()]
+        ));
+        let p = camera_position(&cfg, 0.0, 0.3);
+        assert!(p[1] > 0.0);
+        // The centre ray always passes through the origin.
+        for (yaw, pitch) in [(0.4, -0.2), (-1.0, 0.5)] {
+            let (o, d) = camera_rays(&cfg, yaw, pitch, 3, 3);
+            let t = 2.7;
+            let hit: [f64; 3] = std::array::from_fn(|k| o[4][k] + t * d[4][k]);
+            assert!(hit.iter().all(|c| c.abs() < 1e-12), "{hit:?}");
+        }
+    }
+
+    #[test]
+    fn stratified_samples_cover_the_ray_in_order() {
+        let device = Device::flex();
+        let cfg = CameraConfig::new();
+        let (t, delta) = stratified_samples(&cfg, 2, 1, false, &device);
+        assert_eq!(t.dims(), [2, 1]);
+        let d: Vec<f32> = delta.into_data().convert::<f32>().try_to_vec().unwrap();
+        assert!(
+            (d[0] - (3.3 - (2.25 + 3.3) / 2.0)).abs() < 1e-5,
+            "one sample: {d:?}"
+        );
+        for jitter in [false, true] {
+            let (t, delta) = stratified_samples(&cfg, 5, 12, jitter, &device);
+            let t: Vec<f32> = t.into_data().convert::<f32>().try_to_vec().unwrap();
+            let delta: Vec<f32> = delta.into_data().convert::<f32>().try_to_vec().unwrap();
+            for r in 0..5 {
+                let row = &t[r * 12..(r + 1) * 12];
+                assert!(row.windows(2).all(|w| w[0] <= w[1]));
+                assert!(row[0] >= 2.25 && row[11] <= 3.3);
+                let sum: f32 = delta[r * 12..(r + 1) * 12].iter().sum();
+                assert!((sum - (3.3 - row[0])).abs() < 1e-5);
+                assert!(delta[r * 12..(r + 1) * 12].iter().all(|d| *d >= 0.0));
+            }
+        }
+    }
+}
