@@ -151,10 +151,11 @@ fn mlp_value_and_grad(device: &Device) -> (Vec<f32>, Vec<f32>) {
     let loss = h.clone().powf_scalar(2.0).sum();
     let grads = loss.backward();
     let grad = x.grad(&grads).expect("x requires a gradient");
-    (to_vec(h), to_vec(grad))
+    (to_f32_vec(h), to_f32_vec(grad))
 }
 
-fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+/// A tensor's values as f32, row-major (reads back from the device).
+pub fn to_f32_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data()
         .convert::<f32>()
         .try_to_vec::<f32>()

@@ -88,10 +88,11 @@ impl EqualizedLinear {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::to_f32_vec;
     use burn::tensor::TensorData;
 
     fn vec2(t: Tensor<2>) -> Vec<f32> {
-        t.into_data().convert::<f32>().try_to_vec().unwrap()
+        to_f32_vec(t)
     }
 
     #[test]
@@ -153,17 +154,7 @@ mod tests {
                 assert!((g[o * 3 + i] - gain * xi).abs() < 1e-7, "{g:?}");
             }
         }
-        let gb: Vec<f32> = layer
-            .bias
-            .as_ref()
-            .unwrap()
-            .val()
-            .grad(&grads)
-            .unwrap()
-            .into_data()
-            .convert::<f32>()
-            .try_to_vec()
-            .unwrap();
+        let gb = to_f32_vec(layer.bias.as_ref().unwrap().val().grad(&grads).unwrap());
         assert!(gb.iter().all(|v| (v - 0.01).abs() < 1e-7), "{gb:?}");
     }
 }

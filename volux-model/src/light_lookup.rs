@@ -124,6 +124,7 @@ impl LightMapBatch {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::to_f32_vec;
     use volux_envmap::direction;
     use volux_envmap::report::{SplitMix64, random_directions};
 
@@ -180,7 +181,7 @@ mod tests {
             to_tensor(&dirs, 2, &device),
             Some(Tensor::from_floats(yaw.as_slice(), &device)),
         );
-        let out: Vec<f32> = out.into_data().convert::<f32>().try_to_vec().unwrap();
+        let out: Vec<f32> = to_f32_vec(out);
         for b in 0..2 {
             for (i, d) in dirs.iter().enumerate() {
                 // Rotate the direction in f32 the way the tensor path does.
@@ -208,13 +209,7 @@ mod tests {
         let w = Tensor::<1>::from_floats([0.3f32, -1.2, 0.7], &device).reshape([1, 1, 3]);
         let loss = (batch.lookup(d.clone(), None) * w).sum();
         let grads = loss.backward();
-        let g: Vec<f32> = d
-            .grad(&grads)
-            .unwrap()
-            .into_data()
-            .convert::<f32>()
-            .try_to_vec()
-            .unwrap();
+        let g: Vec<f32> = to_f32_vec(d.grad(&grads).unwrap());
         let f = |p: direction::Dir| -> f64 {
             let v = lm.lookup(p);
             (0..3).map(|c| weights[c] * f64::from(v[c])).sum()
@@ -255,13 +250,7 @@ mod tests {
         )
         .require_grad();
         let grads = batch.lookup(d.clone(), None).sum().backward();
-        let g: Vec<f32> = d
-            .grad(&grads)
-            .unwrap()
-            .into_data()
-            .convert::<f32>()
-            .try_to_vec()
-            .unwrap();
+        let g: Vec<f32> = to_f32_vec(d.grad(&grads).unwrap());
         assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
     }
 

@@ -75,6 +75,7 @@ impl MappingNetwork {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::to_f32_vec;
     use burn::tensor::Distribution;
 
     #[test]
@@ -99,14 +100,7 @@ mod tests {
         let x = Tensor::<2>::random([4, 32], Distribution::Normal(0.0, 3.0), &device);
         let a = pixel_norm(x.clone());
         let b = pixel_norm(x.mul_scalar(1e3));
-        let ms: Vec<f32> = a
-            .clone()
-            .powi_scalar(2)
-            .mean_dim(1)
-            .into_data()
-            .convert::<f32>()
-            .try_to_vec()
-            .unwrap();
+        let ms: Vec<f32> = to_f32_vec(a.clone().powi_scalar(2).mean_dim(1));
         assert!(ms.iter().all(|m| (m - 1.0).abs() < 1e-4), "{ms:?}");
         let diff: f32 = (a - b).abs().max().into_scalar();
         assert!(diff < 1e-4);

@@ -59,6 +59,7 @@ impl PositionalEncoding {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::to_f32_vec;
     use burn::tensor::{Device, TensorData};
 
     #[test]
@@ -73,7 +74,7 @@ mod tests {
             &device,
         ));
         assert_eq!(out.dims(), [2, 63]);
-        let out: Vec<f32> = out.into_data().convert::<f32>().try_to_vec().unwrap();
+        let out: Vec<f32> = to_f32_vec(out);
         for (p, x) in pts.iter().enumerate() {
             let mut want: Vec<f64> = x.to_vec();
             for k in 0..10 {

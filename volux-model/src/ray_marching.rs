@@ -72,6 +72,7 @@ pub fn over_background(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::to_f32_vec;
     use burn::tensor::{Device, TensorData};
     use volux_envmap::report::SplitMix64;
 
@@ -81,7 +82,7 @@ mod tests {
     }
 
     fn vec(t: Tensor<2>) -> Vec<f32> {
-        t.into_data().convert::<f32>().try_to_vec().unwrap()
+        to_f32_vec(t)
     }
 
     /// The plain f64 reference: a loop along each ray.

@@ -113,6 +113,7 @@ pub fn stratified_samples(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::to_f32_vec;
 
     fn close(a: [f64; 3], b: [f64; 3]) -> bool {
         (0..3).all(|k| (a[k] - b[k]).abs() < 1e-12)
@@ -158,15 +159,15 @@ mod tests {
         let cfg = CameraConfig::new();
         let (t, delta) = stratified_samples(&cfg, 2, 1, false, &device);
         assert_eq!(t.dims(), [2, 1]);
-        let d: Vec<f32> = delta.into_data().convert::<f32>().try_to_vec().unwrap();
+        let d: Vec<f32> = to_f32_vec(delta);
         assert!(
             (d[0] - (3.3 - (2.25 + 3.3) / 2.0)).abs() < 1e-5,
             "one sample: {d:?}"
         );
         for jitter in [false, true] {
             let (t, delta) = stratified_samples(&cfg, 5, 12, jitter, &device);
-            let t: Vec<f32> = t.into_data().convert::<f32>().try_to_vec().unwrap();
-            let delta: Vec<f32> = delta.into_data().convert::<f32>().try_to_vec().unwrap();
+            let t: Vec<f32> = to_f32_vec(t);
+            let delta: Vec<f32> = to_f32_vec(delta);
             for r in 0..5 {
                 let row = &t[r * 12..(r + 1) * 12];
                 assert!(row.windows(2).all(|w| w[0] <= w[1]));
