@@ -91,10 +91,6 @@ mod tests {
     use crate::backend::to_f32_vec;
     use burn::tensor::TensorData;
 
-    fn vec2(t: Tensor<2>) -> Vec<f32> {
-        to_f32_vec(t)
-    }
-
     #[test]
     fn forward_applies_the_runtime_gains() {
         let device = Device::flex();
@@ -106,8 +102,8 @@ mod tests {
             TensorData::new(vec![0.5f32, -1.0, 2.0, 0.25], [1, 4]),
             &device,
         );
-        let y = vec2(layer.forward(x));
-        let w = vec2(layer.weight.val());
+        let y = to_f32_vec(layer.forward(x));
+        let w = to_f32_vec(layer.weight.val());
         let g = 0.5 / 2.0;
         for (o, yo) in y.iter().enumerate() {
             let want: f32 = [0.5f32, -1.0, 2.0, 0.25]
@@ -127,7 +123,7 @@ mod tests {
             let layer = EqualizedLinearConfig::new(256, 256)
                 .with_lr_multiplier(lr)
                 .init(&device);
-            let w = vec2(layer.effective_weight());
+            let w = to_f32_vec(layer.effective_weight());
             let var = w.iter().map(|v| f64::from(*v).powi(2)).sum::<f64>() / w.len() as f64;
             assert!(
                 (var * 256.0 - 1.0).abs() < 0.05,
@@ -147,7 +143,7 @@ mod tests {
             .init(&device);
         let x = Tensor::<2>::from_data(TensorData::new(vec![1.0f32, 2.0, -1.0], [1, 3]), &device);
         let grads = layer.forward(x).sum().backward();
-        let g = vec2(layer.weight.val().grad(&grads).unwrap());
+        let g = to_f32_vec(layer.weight.val().grad(&grads).unwrap());
         let gain = 0.01 / 3f32.sqrt();
         for o in 0..2 {
             for (i, xi) in [1.0f32, 2.0, -1.0].iter().enumerate() {

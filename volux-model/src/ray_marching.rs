@@ -81,10 +81,6 @@ mod tests {
         Tensor::from_data(TensorData::new(v, shape), device)
     }
 
-    fn vec(t: Tensor<2>) -> Vec<f32> {
-        to_f32_vec(t)
-    }
-
     /// The plain f64 reference: a loop along each ray.
     fn weights_reference(sigma: &[f64], delta: &[f64], samples: usize) -> Vec<f64> {
         let mut w = Vec::with_capacity(sigma.len());
@@ -110,7 +106,7 @@ mod tests {
         let delta: Vec<f64> = (0..rays * samples)
             .map(|_| 0.01 + 0.05 * rng.next_f64())
             .collect();
-        let got = vec(weights(
+        let got = to_f32_vec(weights(
             t2(&sigma, [rays, samples], &device),
             t2(&delta, [rays, samples], &device),
         ));
@@ -154,16 +150,16 @@ mod tests {
             &[0.25, 0.5],
         );
         let grads = acc.clone().sum().backward();
-        let g = vec(s.grad(&grads).unwrap());
+        let g = to_f32_vec(s.grad(&grads).unwrap());
         assert!(g.iter().all(|v| v.is_finite()), "gradient {g:?}");
-        let sums: Vec<f32> = vec(w.clone().sum_dim(1));
+        let sums: Vec<f32> = to_f32_vec(w.clone().sum_dim(1));
         assert!(
             sums.iter().all(|s| (0.0..=1.0 + 1e-6).contains(s)),
             "{sums:?}"
         );
         assert_eq!(sums[0], 0.0, "an empty ray is transparent");
         assert!((sums[1] - 1.0).abs() < 1e-6, "a wall is opaque");
-        let acc = vec(acc);
+        let acc = to_f32_vec(acc);
         assert_eq!(
             &acc[0..2],
             &[0.25, 0.5],
@@ -189,7 +185,7 @@ mod tests {
         let s = t2(&sigma, [1, 6], &device).require_grad();
         let w = weights(s.clone(), t2(&delta, [1, 6], &device));
         let loss = (w * t2(&q, [1, 6], &device)).sum();
-        let g = vec(s.grad(&loss.backward()).unwrap());
+        let g = to_f32_vec(s.grad(&loss.backward()).unwrap());
         for i in 0..6 {
             let (mut a, mut b) = (sigma, sigma);
             a[i] += 1e-6;
