@@ -9,6 +9,8 @@ pub mod backend;
 pub mod equalized;
 pub mod light_lookup;
 pub mod mapping;
+pub mod modulated;
+pub mod neiif;
 pub mod positional_encoding;
 pub mod ray_marching;
 pub mod ray_sampling;

@@ -54,6 +54,41 @@ impl PositionalEncoding {
         }
         Tensor::cat(parts, 1)
     }
+
+    /// The encoding and its derivative: `[points, 3] -> ([points, output_dim],
+    /// [points, output_dim])`, where column `c` of the second is `d enc_c / d x_{c mod 3}`.
+    /// Every feature depends on one coordinate only (column `c` on coordinate `c mod 3`), so
+    /// this diagonal is the whole Jacobian; [`Self::coordinate_masks`] spreads it into the
+    /// three tangents `d enc / d x_j` that forward-mode normals start from.
+    pub fn forward_with_derivative(&self, x: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
+        let [points, _] = x.dims();
+        let device = x.device();
+        let mut parts = Vec::with_capacity(1 + 2 * self.frequencies);
+        let mut derivs = Vec::with_capacity(1 + 2 * self.frequencies);
+        if self.include_input {
+            parts.push(x.clone());
+            derivs.push(Tensor::ones([points, 3], &device));
+        }
+        for k in 0..self.frequencies {
+            let f = PI * 2f64.powi(k as i32);
+            let scaled = x.clone().mul_scalar(f);
+            let (sin, cos) = (scaled.clone().sin(), scaled.cos());
+            derivs.push(cos.clone().mul_scalar(f));
+            derivs.push(sin.clone().mul_scalar(-f));
+            parts.push(sin);
+            parts.push(cos);
+        }
+        (Tensor::cat(parts, 1), Tensor::cat(derivs, 1))
+    }
+
+    /// `[3, output_dim]`: row `j` is 1 on the features of coordinate `j`, 0 elsewhere.
+    pub fn coordinate_masks(&self, device: &burn::tensor::Device) -> Tensor<2> {
+        let d = self.output_dim();
+        let mask: Vec<f32> = (0..3)
+            .flat_map(|j| (0..d).map(move |c| if c % 3 == j { 1.0 } else { 0.0 }))
+            .collect();
+        Tensor::<1>::from_floats(mask.as_slice(), device).reshape([3, d])
+    }
 }
 
 #[cfg(test)]
@@ -88,6 +123,37 @@ mod tests {
                 assert!(
                     (got - w).abs() < 2e-4,
                     "point {p} feature {i}: {got} vs {w}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn derivative_matches_central_differences() {
+        let device = Device::flex();
+        let enc = PositionalEncodingConfig::new().with_frequencies(4).init();
+        let x = [0.3f64, -0.45, 0.8];
+        let at = |p: [f64; 3]| {
+            let data: Vec<f32> = p.iter().map(|v| *v as f32).collect();
+            Tensor::<2>::from_data(TensorData::new(data, [1, 3]), &device)
+        };
+        let (_, deriv) = enc.forward_with_derivative(at(x));
+        let masks = to_f32_vec(enc.coordinate_masks(&device));
+        let deriv = to_f32_vec(deriv);
+        let h = 1e-3;
+        for j in 0..3 {
+            let (mut a, mut b) = (x, x);
+            a[j] += h;
+            b[j] -= h;
+            let fa = to_f32_vec(enc.forward(at(a)));
+            let fb = to_f32_vec(enc.forward(at(b)));
+            for c in 0..enc.output_dim() {
+                let fd = (f64::from(fa[c]) - f64::from(fb[c])) / (2.0 * h);
+                let got = f64::from(deriv[c] * masks[j * enc.output_dim() + c]);
+                // Central differences of sin(8 pi x) with h = 1e-3 are good to ~1e-3 relative.
+                assert!(
+                    (got - fd).abs() < 5e-3 * (1.0 + fd.abs()),
+                    "j {j} c {c}: {got} vs {fd}"
                 );
             }
         }

@@ -1,0 +1,421 @@
+//! The neural implicit intrinsic field (NeIIF; paper section 3.2 and appendix B): a point `x`
+//! and a latent `w` give a volume density `sigma`, its gradient (hence the normal), an albedo,
+//! specular blend weights `omega_i` and a feature `f`.
+//!
+//! Fourier positional encoding (10 frequencies) -> 6 modulated fully connected layers (256 in
+//! the paper) with a smooth activation -> density from a linear layer on layer 4 (softplus);
+//! on layer 6 a two-layer head gives albedo (3, sigmoid) and specular weights (one per light
+//! map, softplus, so non-negative); the layer-6 output is the feature `f`.
+//!
+//! Normals `n = -grad(sigma) / |grad(sigma)|` enter the loss (through `D = L_1(n)` and the
+//! normal maps), so `grad(sigma)` must itself be differentiable. Burn's autodiff is first order,
+//! so the three tangents `d/dx_j` are pushed forward through layers 1-4 alongside the values:
+//! a linear map applies its (modulated, demodulated) weight without bias, an activation
+//! multiplies by its derivative. That is exact, costs about 4x the first four layers, and is
+//! ordinary tensor algebra that first-order autodiff differentiates. The activation must be
+//! smooth so that the normals are continuous: `0.2 x + 0.8 softplus(x)`, a leaky ReLU with the
+//! corner rounded (slope from 0.2 to 1, never dead).
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::tensor::{Device, Tensor, activation};
+
+use crate::equalized::{EqualizedLinear, EqualizedLinearConfig};
+use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
+use crate::positional_encoding::{PositionalEncoding, PositionalEncodingConfig};
+
+/// `1 / sqrt(E[a(x)^2])` for `x ~ N(0, 1)`: keeps unit second moment through a layer, as
+/// StyleGAN2's `sqrt(2)` does for its leaky ReLU.
+pub const SMOOTH_GAIN: f64 = 1.125;
+
+/// Below this squared gradient norm the normal shrinks towards zero instead of dividing by
+/// (almost) nothing: `n = -g / sqrt(|g|^2 + NORMAL_EPS2)`.
+pub const NORMAL_EPS2: f64 = 1e-12;
+
+/// The smooth activation `gain (0.2 x + 0.8 softplus(x))`.
+pub fn smooth_lrelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    (x.clone().mul_scalar(0.2) + activation::softplus(x, 1.0).mul_scalar(0.8))
+        .mul_scalar(SMOOTH_GAIN)
+}
+
+/// Its derivative `gain (0.2 + 0.8 sigmoid(x))`.
+pub fn smooth_lrelu_derivative<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    activation::sigmoid(x)
+        .mul_scalar(0.8)
+        .add_scalar(0.2)
+        .mul_scalar(SMOOTH_GAIN)
+}
+
+/// Configuration of a [`Neiif`].
+#[derive(Config, Debug)]
+pub struct NeiifConfig {
+    /// Dimension of `w`.
+    #[config(default = 512)]
+    pub w_dim: usize,
+    /// Width of every modulated layer, and so of the feature `f` (256 in the paper).
+    #[config(default = 256)]
+    pub width: usize,
+    /// Number of modulated layers (6 in the paper).
+    #[config(default = 6)]
+    pub layers: usize,
+    /// The layer whose output feeds the density head (4 in the paper, counting from 1).
+    #[config(default = 4)]
+    pub density_layer: usize,
+    /// Octaves of the positional encoding (10 in the paper).
+    #[config(default = 10)]
+    pub frequencies: usize,
+    /// Hidden width of the albedo / specular head.
+    #[config(default = 256)]
+    pub head_width: usize,
+    /// Number of specular blend weights (one per light map: 4 for exponents 1, 16, 32, 64).
+    #[config(default = 4)]
+    pub specular_lobes: usize,
+    /// Initial bias of the specular-weight logits: softplus(-2) = 0.13 per lobe, so a fresh
+    /// field is mostly diffuse.
+    #[config(default = -2.0)]
+    pub specular_bias_init: f64,
+}
+
+/// The field.
+#[derive(Module, Debug)]
+pub struct Neiif {
+    pub encoding: PositionalEncoding,
+    pub layers: Vec<ModulatedLinear>,
+    pub density_head: EqualizedLinear,
+    pub head_hidden: EqualizedLinear,
+    pub head_out: EqualizedLinear,
+    pub density_layer: usize,
+}
+
+/// Which outputs a query needs; what is not needed is not computed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FieldWants {
+    /// Gradient of the density and normals (forward-mode tangents through layers 1-4).
+    pub normals: bool,
+    /// Albedo, specular weights and features (layers 5-6 and the head).
+    pub appearance: bool,
+}
+
+impl FieldWants {
+    /// Everything.
+    pub const ALL: Self = Self {
+        normals: true,
+        appearance: true,
+    };
+    /// Density only (layers 1-4 and the density head).
+    pub const DENSITY: Self = Self {
+        normals: false,
+        appearance: false,
+    };
+}
+
+/// What the field gives at `[batch, points]` positions.
+#[derive(Clone, Debug)]
+pub struct FieldOutput {
+    /// `[batch, points]`, non-negative.
+    pub sigma: Tensor<2>,
+    /// `d sigma / dx`, `[batch, points, 3]`.
+    pub grad_sigma: Option<Tensor<3>>,
+    /// `-grad / |grad|` (guarded), `[batch, points, 3]`.
+    pub normals: Option<Tensor<3>>,
+    /// `[batch, points, 3]` in [0, 1].
+    pub albedo: Option<Tensor<3>>,
+    /// `[batch, points, specular_lobes]`, non-negative.
+    pub specular_weights: Option<Tensor<3>>,
+    /// The layer-6 output `f`, `[batch, points, width]`.
+    pub features: Option<Tensor<3>>,
+}
+
+impl NeiifConfig {
+    /// A field with freshly initialised parameters on `device`.
+    pub fn init(&self, device: &Device) -> Neiif {
+        assert!(
+            (1..=self.layers).contains(&self.density_layer),
+            "density layer {} outside 1..={}",
+            self.density_layer,
+            self.layers
+        );
+        let encoding = PositionalEncodingConfig::new()
+            .with_frequencies(self.frequencies)
+            .init();
+        let layers = (0..self.layers)
+            .map(|i| {
+                let d_input = if i == 0 {
+                    encoding.output_dim()
+                } else {
+                    self.width
+                };
+                ModulatedLinearConfig::new(self.w_dim, d_input, self.width).init(device)
+            })
+            .collect();
+        let mut head_out =
+            EqualizedLinearConfig::new(self.head_width, 3 + self.specular_lobes).init(device);
+        if let Some(bias) = head_out.bias.take() {
+            // Albedo logits start at 0 (albedo 0.5), specular logits at `specular_bias_init`.
+            let mut init = vec![0.0f32; 3 + self.specular_lobes];
+            for v in init.iter_mut().skip(3) {
+                *v = (self.specular_bias_init / head_out.bias_gain) as f32;
+            }
+            head_out.bias = Some(burn::module::Param::from_tensor(Tensor::<1>::from_floats(
+                init.as_slice(),
+                &bias.device(),
+            )));
+        }
+        Neiif {
+            encoding,
+            layers,
+            density_head: EqualizedLinearConfig::new(self.width, 1).init(device),
+            head_hidden: EqualizedLinearConfig::new(self.width, self.head_width).init(device),
+            head_out,
+            density_layer: self.density_layer,
+        }
+    }
+}
+
+/// `[b, p, c] -> [b * p, c]`, through an [`EqualizedLinear`], and back.
+fn per_point(layer: &EqualizedLinear, x: Tensor<3>) -> Tensor<3> {
+    let [b, p, c] = x.dims();
+    let y = layer.forward(x.reshape([b * p, c]));
+    let o = y.dims()[1];
+    y.reshape([b, p, o])
+}
+
+/// The same without the bias (how a tangent goes through the layer).
+fn per_point_linear(layer: &EqualizedLinear, x: Tensor<3>) -> Tensor<3> {
+    let [b, p, c] = x.dims();
+    let y = x
+        .reshape([b * p, c])
+        .matmul(layer.effective_weight().transpose());
+    let o = y.dims()[1];
+    y.reshape([b, p, o])
+}
+
+impl Neiif {
+    /// Width of the feature `f`.
+    pub fn feature_dim(&self) -> usize {
+        self.layers.last().map_or(0, ModulatedLinear::d_output)
+    }
+
+    /// Number of specular blend weights.
+    pub fn specular_lobes(&self) -> usize {
+        self.head_out.weight.dims()[0] - 3
+    }
+
+    /// Queries `points: [batch, points, 3]` of the fields of `w: [batch, w_dim]`.
+    pub fn forward(&self, points: Tensor<3>, w: Tensor<2>, wants: FieldWants) -> FieldOutput {
+        let [b, p, _] = points.dims();
+        let flat = points.reshape([b * p, 3]);
+        let d = self.encoding.output_dim();
+        let (encoded, mut tangents) = if wants.normals {
+            let (encoded, deriv) = self.encoding.forward_with_derivative(flat);
+            let masks = self.encoding.coordinate_masks(&encoded.device());
+            // [b, 3, p, d] -> [b, 3p, d]: tangent j of point i at row j * p + i.
+            let t = deriv.reshape([b, 1, p, d]) * masks.reshape([1, 3, 1, d]);
+            (encoded, Some(t.reshape([b, 3 * p, d])))
+        } else {
+            (self.encoding.forward(flat), None)
+        };
+        let mut h = encoded.reshape([b, p, d]);
+        let mut out = FieldOutput {
+            sigma: Tensor::zeros([b, p], &h.device()),
+            grad_sigma: None,
+            normals: None,
+            albedo: None,
+            specular_weights: None,
+            features: None,
+        };
+        for (i, layer) in self.layers.iter().enumerate() {
+            let m = layer.modulation(w.clone());
+            let z = match tangents.take() {
+                Some(t) => {
+                    // Values and tangents through one matmul; the bias goes to values only.
+                    let both = layer.linear(Tensor::cat(vec![h, t], 1), &m);
+                    let o = layer.d_output();
+                    let z = layer.add_bias(both.clone().narrow(1, 0, p));
+                    let dz = smooth_lrelu_derivative(z.clone()).reshape([b, 1, p, o]);
+                    let t = both.narrow(1, p, 3 * p).reshape([b, 3, p, o]) * dz;
+                    tangents = Some(t.reshape([b, 3 * p, o]));
+                    z
+                }
+                None => layer.add_bias(layer.linear(h, &m)),
+            };
+            h = smooth_lrelu(z);
+            if i + 1 == self.density_layer {
+                let raw = per_point(&self.density_head, h.clone()); // [b, p, 1]
+                out.sigma = activation::softplus(raw.clone(), 1.0).reshape([b, p]);
+                if let Some(t) = tangents.take() {
+                    // d sigma / dx_j = sigmoid(raw) * (head weight . tangent_j).
+                    let g = per_point_linear(&self.density_head, t).reshape([b, 3, p]);
+                    let g = g * activation::sigmoid(raw).reshape([b, 1, p]);
+                    let g = g.swap_dims(1, 2); // [b, p, 3]
+                    let norm = g
+                        .clone()
+                        .powi_scalar(2)
+                        .sum_dim(2)
+                        .add_scalar(NORMAL_EPS2)
+                        .sqrt();
+                    out.normals = Some(g.clone().neg() / norm);
+                    out.grad_sigma = Some(g);
+                }
+                if !wants.appearance {
+                    return out;
+                }
+            }
+        }
+        let head = per_point(
+            &self.head_out,
+            smooth_lrelu(per_point(&self.head_hidden, h.clone())),
+        );
+        let k = self.specular_lobes();
+        out.albedo = Some(activation::sigmoid(head.clone().narrow(2, 0, 3)));
+        out.specular_weights = Some(activation::softplus(head.narrow(2, 3, k), 1.0));
+        out.features = Some(h);
+        out
+    }
+
+    /// Number of scalar parameters.
+    pub fn num_params(&self) -> usize {
+        Module::num_params(self)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::to_f32_vec;
+    use burn::tensor::{Distribution, TensorData};
+    use volux_envmap::report::SplitMix64;
+
+    fn small(frequencies: usize, device: &Device) -> Neiif {
+        NeiifConfig::new()
+            .with_w_dim(16)
+            .with_width(32)
+            .with_head_width(16)
+            .with_frequencies(frequencies)
+            .init(device)
+    }
+
+    fn points(n: usize, seed: u64, device: &Device) -> Tensor<3> {
+        let mut rng = SplitMix64::new(seed);
+        let v: Vec<f32> = (0..3 * n)
+            .map(|_| (rng.next_f64() * 1.6 - 0.8) as f32)
+            .collect();
+        Tensor::from_data(TensorData::new(v, [1, n, 3]), device)
+    }
+
+    /// Forward-mode `grad(sigma)` against central differences of the density on random
+    /// weights. `h` and the tolerance are set by the highest octave: central differences of
+    /// `sin(2^(F-1) pi x)` have a truncation error `~ (2^(F-1) pi h)^2 / 6`.
+    fn check_gradient(frequencies: usize, h: f64, tol: f64) {
+        let device = Device::flex();
+        let field = small(frequencies, &device);
+        let w = Tensor::<2>::random([1, 16], Distribution::Normal(0.0, 1.0), &device);
+        let n = 24;
+        let pts = points(n, 7, &device);
+        let got = field.forward(pts.clone(), w.clone(), FieldWants::ALL);
+        let grad = to_f32_vec(got.grad_sigma.unwrap());
+        let normals = to_f32_vec(got.normals.unwrap());
+        let base = to_f32_vec(pts);
+        let sigma_at = |delta: [f64; 3]| {
+            let v: Vec<f32> = base
+                .chunks(3)
+                .flat_map(|p| (0..3).map(move |k| (f64::from(p[k]) + delta[k]) as f32))
+                .collect();
+            let pts = Tensor::<3>::from_data(TensorData::new(v, [1, n, 3]), &device);
+            to_f32_vec(field.forward(pts, w.clone(), FieldWants::DENSITY).sigma)
+        };
+        let mut worst = 0.0f64;
+        for j in 0..3 {
+            let mut e = [0.0; 3];
+            e[j] = h;
+            let plus = sigma_at(e);
+            e[j] = -h;
+            let minus = sigma_at(e);
+            for i in 0..n {
+                let fd = (f64::from(plus[i]) - f64::from(minus[i])) / (2.0 * h);
+                let g = f64::from(grad[3 * i + j]);
+                let scale = (0..3)
+                    .map(|k| f64::from(grad[3 * i + k]).powi(2))
+                    .sum::<f64>()
+                    .sqrt();
+                worst = worst.max((g - fd).abs() / (scale + 1e-3));
+            }
+        }
+        assert!(worst < tol, "F={frequencies}: worst relative error {worst}");
+        for i in 0..n {
+            let len: f32 = (0..3).map(|k| normals[3 * i + k].powi(2)).sum::<f32>();
+            assert!((len - 1.0).abs() < 1e-4, "normal {i} has length^2 {len}");
+            let dot: f32 = (0..3).map(|k| normals[3 * i + k] * grad[3 * i + k]).sum();
+            assert!(dot < 0.0, "normals point against the density gradient");
+        }
+    }
+
+    #[test]
+    fn forward_mode_gradient_matches_central_differences_at_low_frequencies() {
+        check_gradient(4, 1e-3, 2e-3);
+    }
+
+    #[test]
+    fn forward_mode_gradient_matches_central_differences_at_the_papers_ten_octaves() {
+        // f32 sigma differences over 2h = 2e-4 carry ~1e-3 relative noise.
+        check_gradient(10, 1e-4, 2e-2);
+    }
+
+    #[test]
+    fn outputs_have_their_shapes_and_ranges_and_skip_what_is_not_wanted() {
+        let device = Device::flex();
+        let field = small(10, &device);
+        let w = Tensor::<2>::random([2, 16], Distribution::Normal(0.0, 1.0), &device);
+        let pts = Tensor::cat(vec![points(9, 1, &device), points(9, 2, &device)], 0);
+        let all = field.forward(pts.clone(), w.clone(), FieldWants::ALL);
+        assert_eq!(all.sigma.dims(), [2, 9]);
+        assert_eq!(all.normals.as_ref().unwrap().dims(), [2, 9, 3]);
+        assert_eq!(all.features.as_ref().unwrap().dims(), [2, 9, 32]);
+        let albedo = to_f32_vec(all.albedo.unwrap());
+        assert!(albedo.iter().all(|a| (0.0..=1.0).contains(a)));
+        let spec = to_f32_vec(all.specular_weights.unwrap());
+        assert_eq!(spec.len(), 2 * 9 * 4);
+        assert!(spec.iter().all(|s| *s >= 0.0));
+        assert!(to_f32_vec(all.sigma.clone()).iter().all(|s| *s >= 0.0));
+        let density = field.forward(pts.clone(), w.clone(), FieldWants::DENSITY);
+        assert!(density.normals.is_none() && density.albedo.is_none());
+        let diff: f32 = (density.sigma - all.sigma).abs().max().into_scalar();
+        assert!(diff < 1e-5, "density-only query differs by {diff}");
+        let no_normals = field.forward(
+            pts,
+            w,
+            FieldWants {
+                normals: false,
+                appearance: true,
+            },
+        );
+        assert!(no_normals.normals.is_none() && no_normals.features.is_some());
+    }
+
+    #[test]
+    fn a_loss_on_normals_reaches_the_first_layer_and_the_mapping_input() {
+        let device = Device::flex().autodiff();
+        let field = small(6, &device);
+        let w =
+            Tensor::<2>::random([1, 16], Distribution::Normal(0.0, 1.0), &device).require_grad();
+        let out = field.forward(points(16, 3, &device), w.clone(), FieldWants::ALL);
+        let loss = out.normals.unwrap().narrow(2, 2, 1).sum();
+        let grads = loss.backward();
+        let g1 = to_f32_vec(field.layers[0].weight.val().grad(&grads).unwrap());
+        assert!(g1.iter().all(|v| v.is_finite()));
+        assert!(
+            g1.iter().any(|v| v.abs() > 0.0),
+            "no gradient reached layer 1"
+        );
+        let gw = to_f32_vec(w.grad(&grads).unwrap());
+        assert!(gw.iter().any(|v| v.abs() > 0.0));
+        // Layers 5-6 do not shape the density, so a loss on normals leaves them untouched.
+        assert!(
+            field.layers[5]
+                .weight
+                .val()
+                .grad(&grads)
+                .is_none_or(|g| { to_f32_vec(g).iter().all(|v| *v == 0.0) })
+        );
+    }
+}
