@@ -5,6 +5,7 @@
 //! compositing along rays ([`ray_marching`]); the NeIIF, importance sampling, upsampler,
 //! relighting network and discriminators follow.
 
+pub mod analytic;
 pub mod backend;
 pub mod equalized;
 pub mod light_lookup;
@@ -14,3 +15,4 @@ pub mod neiif;
 pub mod positional_encoding;
 pub mod ray_marching;
 pub mod ray_sampling;
+pub mod volume_rendering;

@@ -23,6 +23,7 @@ const POLE_EPS: f32 = 1e-12;
 pub struct LightMapBatch {
     /// `[batch, 3, height + 2, width + 2]`, the padded layout.
     padded: Tensor<4>,
+    exponent: u32,
     width: usize,
     height: usize,
 }
@@ -75,9 +76,15 @@ impl LightMapBatch {
         let padded = Tensor::<4>::from_data(TensorData::new(data, [maps.len(), 3, ph, pw]), device);
         Ok(Self {
             padded,
+            exponent: first.exponent(),
             width: w,
             height: h,
         })
+    }
+
+    /// The Phong exponent the maps share.
+    pub fn exponent(&self) -> u32 {
+        self.exponent
     }
 
     /// Batch size.

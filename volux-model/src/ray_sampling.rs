@@ -76,6 +76,30 @@ pub fn camera_rays(
     (vec![o; width * height], dirs)
 }
 
+/// Rays of one `width x height` image per pose, on `device`: origins and unit directions,
+/// `[poses, height * width, 3]` each (see [`camera_rays`]).
+pub fn camera_ray_batch(
+    config: &CameraConfig,
+    poses: &[(f64, f64)],
+    width: usize,
+    height: usize,
+    device: &Device,
+) -> (Tensor<3>, Tensor<3>) {
+    let r = width * height;
+    let mut origins = Vec::with_capacity(poses.len() * r * 3);
+    let mut dirs = Vec::with_capacity(poses.len() * r * 3);
+    for &(yaw, pitch) in poses {
+        let (o, d) = camera_rays(config, yaw, pitch, width, height);
+        origins.extend(o.iter().flatten().map(|v| *v as f32));
+        dirs.extend(d.iter().flatten().map(|v| *v as f32));
+    }
+    let shape = [poses.len(), r, 3];
+    (
+        Tensor::from_data(TensorData::new(origins, shape), device),
+        Tensor::from_data(TensorData::new(dirs, shape), device),
+    )
+}
+
 /// Stratified sample depths `[rays, samples]` between `near` and `far`, one per equal bin,
 /// jittered uniformly inside it (`jitter = false`: bin centres), and the segment lengths
 /// `delta` that compositing needs (each sample's distance to the next, the last to `far`).
@@ -100,14 +124,100 @@ pub fn stratified_samples(
         Tensor::<2>::full([rays, samples], 0.5, device)
     };
     let t = starts + offset.mul_scalar(bin);
-    let end = Tensor::<2>::full([rays, 1], config.far as f32, device);
+    let delta = segment_lengths(t.clone(), config.far);
+    (t, delta)
+}
+
+/// Segment lengths of sorted depths `[rays, samples]`: each sample's distance to the next, the
+/// last one's to `far`.
+pub fn segment_lengths(t: Tensor<2>, far: f64) -> Tensor<2> {
+    let [rays, samples] = t.dims();
+    let end = Tensor::<2>::full([rays, 1], far as f32, &t.device());
     let next = if samples > 1 {
         Tensor::cat(vec![t.clone().narrow(1, 1, samples - 1), end], 1)
     } else {
         end
     };
-    let delta = next - t.clone();
-    (t, delta)
+    next - t
+}
+
+/// Share of the importance distribution spread uniformly over the ray, so that every bin keeps
+/// a non-zero probability (empty rays, and surfaces the coarse pass missed).
+pub const IMPORTANCE_UNIFORM_MIX: f64 = 1e-2;
+
+/// Importance samples `[rays, count]` (NeRF's hierarchical sampling): coarse depths `t`
+/// (`[rays, samples]`, sorted) and their compositing weights define a piecewise-constant
+/// density over bins bounded by the midpoints between samples (and `near`, `far`); `count`
+/// depths are drawn from it by inverse transform of stratified uniforms (`jitter = false`:
+/// bin centres of the uniforms). The result is sorted and carries no gradient.
+pub fn importance_samples(
+    config: &CameraConfig,
+    t: Tensor<2>,
+    weights: Tensor<2>,
+    count: usize,
+    jitter: bool,
+) -> Tensor<2> {
+    let [rays, samples] = t.dims();
+    let device = t.device();
+    let (t, weights) = (t.detach(), weights.detach());
+    // Bin edges [rays, samples + 1].
+    let near = Tensor::<2>::full([rays, 1], config.near as f32, &device);
+    let far = Tensor::<2>::full([rays, 1], config.far as f32, &device);
+    let edges = if samples > 1 {
+        let mid =
+            (t.clone().narrow(1, 0, samples - 1) + t.narrow(1, 1, samples - 1)).mul_scalar(0.5);
+        Tensor::cat(vec![near, mid, far], 1)
+    } else {
+        Tensor::cat(vec![near, far], 1)
+    };
+    let widths = edges.clone().narrow(1, 1, samples) - edges.clone().narrow(1, 0, samples);
+    // Probability of each bin: the weights, mixed with a little of the uniform density.
+    let total = weights.clone().sum_dim(1).add_scalar(1e-12);
+    let length = (config.far - config.near) as f32;
+    let prob = (weights / total).mul_scalar(1.0 - IMPORTANCE_UNIFORM_MIX)
+        + widths
+            .clone()
+            .div_scalar(length)
+            .mul_scalar(IMPORTANCE_UNIFORM_MIX);
+    let cdf = Tensor::cat(
+        vec![Tensor::zeros([rays, 1], &device), prob.clone().cumsum(1)],
+        1,
+    );
+    // Stratified uniforms in (0, 1), sorted.
+    let starts: Vec<f32> = (0..count).map(|i| i as f32 / count as f32).collect();
+    let starts = Tensor::<1>::from_floats(starts.as_slice(), &device)
+        .reshape([1, count])
+        .expand([rays, count]);
+    let offset = if jitter {
+        Tensor::<2>::random([rays, count], Distribution::Uniform(0.0, 1.0), &device)
+    } else {
+        Tensor::<2>::full([rays, count], 0.5, &device)
+    };
+    let last = cdf.clone().narrow(1, samples, 1); // ~1, up to rounding
+    let u = (starts + offset.div_scalar(count as f32)) * last;
+    // Bin index: how many inner cdf values lie at or below u.
+    let index = if samples > 1 {
+        let inner = cdf.clone().narrow(1, 1, samples - 1);
+        inner
+            .reshape([rays, 1, samples - 1])
+            .expand([rays, count, samples - 1])
+            .lower_equal(
+                u.clone()
+                    .reshape([rays, count, 1])
+                    .expand([rays, count, samples - 1]),
+            )
+            .int()
+            .sum_dim(2)
+            .reshape([rays, count])
+    } else {
+        Tensor::zeros([rays, count], &device)
+    };
+    let cdf_lo = cdf.gather(1, index.clone());
+    let prob_at = prob.gather(1, index.clone());
+    let edge_lo = edges.gather(1, index.clone());
+    let width_at = widths.gather(1, index);
+    let frac = ((u - cdf_lo) / prob_at.add_scalar(1e-12)).clamp(0.0, 1.0);
+    edge_lo + frac * width_at
 }
 
 #[cfg(test)]
@@ -150,6 +260,53 @@ mod tests {
             let t = 2.7;
             let hit: [f64; 3] = std::array::from_fn(|k| o[4][k] + t * d[4][k]);
             assert!(hit.iter().all(|c| c.abs() < 1e-12), "{hit:?}");
+        }
+    }
+
+    #[test]
+    fn importance_samples_follow_the_coarse_weights() {
+        let device = Device::flex();
+        let cfg = CameraConfig::new();
+        let (t, _) = stratified_samples(&cfg, 2, 16, false, &device);
+        // Ray 0: all weight in coarse sample 5; ray 1: no weight at all (an empty ray).
+        let mut w = vec![0.0f32; 32];
+        w[5] = 0.9;
+        let w = Tensor::<1>::from_floats(w.as_slice(), &device).reshape([2, 16]);
+        let fine = importance_samples(&cfg, t.clone(), w, 64, false);
+        assert_eq!(fine.dims(), [2, 64]);
+        let fine = to_f32_vec(fine);
+        let tv = to_f32_vec(t);
+        let (lo, hi) = ((tv[4] + tv[5]) / 2.0, (tv[5] + tv[6]) / 2.0);
+        let inside = fine[..64].iter().filter(|f| (lo..=hi).contains(*f)).count();
+        // 99% of the probability sits in that bin: all but the uniform share's samples.
+        assert!(inside >= 62, "{inside} of 64 in the heavy bin");
+        for r in 0..2 {
+            let row = &fine[r * 64..(r + 1) * 64];
+            assert!(row.windows(2).all(|p| p[0] <= p[1]), "sorted");
+            assert!(row.iter().all(|f| (2.25..=3.3).contains(f)));
+        }
+        // The empty ray gets uniform samples.
+        let row = &fine[64..];
+        for (i, f) in row.iter().enumerate() {
+            let want = 2.25 + (i as f32 + 0.5) / 64.0 * 1.05;
+            assert!((f - want).abs() < 1e-3, "{i}: {f} vs {want}");
+        }
+    }
+
+    #[test]
+    fn importance_samples_reproduce_a_smooth_distribution() {
+        // Weights proportional to the bin widths of a linear ramp: the inverse transform of
+        // stratified uniforms must land on the ramp's quantiles.
+        let device = Device::flex();
+        let cfg = CameraConfig::new();
+        let (t, _) = stratified_samples(&cfg, 1, 200, false, &device);
+        let w = t.clone().sub_scalar(2.25); // density ~ (t - near)
+        let fine = to_f32_vec(importance_samples(&cfg, t, w, 10, false));
+        for (i, f) in fine.iter().enumerate() {
+            let q = (i as f64 + 0.5) / 10.0;
+            // cdf(t) = ((t - near) / L)^2 for the pure ramp; the 1% uniform mix shifts it a bit.
+            let want = 2.25 + 1.05 * q.sqrt();
+            assert!((f64::from(*f) - want).abs() < 0.01, "{i}: {f} vs {want}");
         }
     }
 
