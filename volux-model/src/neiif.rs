@@ -357,8 +357,9 @@ mod tests {
 
     #[test]
     fn forward_mode_gradient_matches_central_differences_at_the_papers_ten_octaves() {
-        // f32 sigma differences over 2h = 2e-4 carry ~1e-3 relative noise.
-        check_gradient(10, 1e-4, 2e-2);
+        // f32 sigma differences over 2h = 2e-4 carry ~3e-3 relative noise and the truncation
+        // error is ~4e-3; a wrong tangent is off by O(1).
+        check_gradient(10, 1e-4, 5e-2);
     }
 
     #[test]
