@@ -15,4 +15,6 @@ pub mod neiif;
 pub mod positional_encoding;
 pub mod ray_marching;
 pub mod ray_sampling;
+pub mod sampling_report;
+pub mod upsampler;
 pub mod volume_rendering;

@@ -37,6 +37,29 @@ pub fn camera_position(config: &CameraConfig, yaw: f64, pitch: f64) -> [f64; 3] 
     ]
 }
 
+fn normalized(v: [f64; 3]) -> [f64; 3] {
+    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    v.map(|c| c / l)
+}
+
+/// The camera's axes in world space for a pose: `[right, up, back]` (image +x, image +y, and
+/// the direction from the head towards the camera). Camera-space coordinates of a world
+/// vector are its dot products with these, so a normal facing the camera is camera-space +z.
+pub fn camera_basis(config: &CameraConfig, yaw: f64, pitch: f64) -> [[f64; 3]; 3] {
+    let back = normalized(camera_position(config, yaw, pitch));
+    let forward = back.map(|c| -c);
+    let cross = |a: [f64; 3], b: [f64; 3]| {
+        [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ]
+    };
+    let right = normalized(cross(forward, [0.0, 1.0, 0.0]));
+    let up = cross(right, forward);
+    [right, up, back]
+}
+
 /// Rays of a `width x height` image at pose `(yaw, pitch)`: origins and unit directions,
 /// `[height * width, 3]` each, row-major from the top-left pixel. Built in f64 on the host.
 pub fn camera_rays(
@@ -47,20 +70,8 @@ pub fn camera_rays(
     height: usize,
 ) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
     let o = camera_position(config, yaw, pitch);
-    let norm = |v: [f64; 3]| {
-        let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-        v.map(|c| c / l)
-    };
-    let cross = |a: [f64; 3], b: [f64; 3]| {
-        [
-            a[1] * b[2] - a[2] * b[1],
-            a[2] * b[0] - a[0] * b[2],
-            a[0] * b[1] - a[1] * b[0],
-        ]
-    };
-    let forward = norm(o.map(|c| -c));
-    let right = norm(cross(forward, [0.0, 1.0, 0.0]));
-    let up = cross(right, forward);
+    let [right, up, back] = camera_basis(config, yaw, pitch);
+    let forward = back.map(|c| -c);
     let tan = (config.fov_degrees.to_radians() / 2.0).tan();
     let aspect = width as f64 / height as f64;
     let mut dirs = Vec::with_capacity(width * height);
@@ -68,7 +79,7 @@ pub fn camera_rays(
         for x in 0..width {
             let sx = (2.0 * (x as f64 + 0.5) / width as f64 - 1.0) * tan * aspect;
             let sy = (1.0 - 2.0 * (y as f64 + 0.5) / height as f64) * tan;
-            dirs.push(norm(std::array::from_fn(|k| {
+            dirs.push(normalized(std::array::from_fn(|k| {
                 forward[k] + sx * right[k] + sy * up[k]
             })));
         }

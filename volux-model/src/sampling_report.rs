@@ -1,0 +1,255 @@
+//! Error against run time of the renderer's samples per ray: for each sample count (with and
+//! without as many importance samples again), the relative RMS error of the accumulated albedo,
+//! normals, diffuse and specular maps against a 1024-sample stratified reference, and the wall
+//! time of the render, on random NeIIFs (fog-like, as a generator is at initialisation) and on
+//! soft spheres (hard surfaces, the stiff case). `volux model sampling-report` prints it;
+//! docs/model.md records it.
+
+use std::time::Instant;
+
+use burn::tensor::{Device, Distribution, Tensor};
+
+use crate::analytic::SoftSphere;
+use crate::backend::to_f32_vec;
+use crate::neiif::NeiifConfig;
+use crate::ray_sampling::camera_ray_batch;
+use crate::volume_rendering::{
+    Field, LatentField, Lighting, RenderOutput, RenderWants, RendererConfig, render,
+};
+
+/// What the report measures.
+#[derive(Clone, Debug)]
+pub struct SamplingSettings {
+    /// Image side (rays = side^2).
+    pub side: usize,
+    /// Stratified sample counts to measure.
+    pub counts: Vec<usize>,
+    /// Samples of the reference (stratified, no importance).
+    pub reference: usize,
+    /// Random NeIIFs to average over.
+    pub random_fields: usize,
+    /// Rays per render call (bounds memory).
+    pub chunk: usize,
+}
+
+impl Default for SamplingSettings {
+    fn default() -> Self {
+        Self {
+            side: 32,
+            counts: vec![8, 16, 32, 64],
+            reference: 1024,
+            random_fields: 2,
+            chunk: 256,
+        }
+    }
+}
+
+/// One line of the report.
+#[derive(Clone, Debug)]
+pub struct SamplingRow {
+    pub scene: String,
+    pub stratified: usize,
+    pub importance: usize,
+    /// Wall time of one render of the image (forward only), milliseconds.
+    pub ms: f64,
+    /// Relative RMS error of `[A, N, D, S]` against the reference.
+    pub error: [f64; 4],
+}
+
+/// The maps the report compares, read back.
+struct Maps([Vec<f32>; 4]);
+
+fn render_chunked(
+    cfg: &RendererConfig,
+    field: &impl Field,
+    side: usize,
+    lighting: &Lighting,
+    chunk: usize,
+    device: &Device,
+) -> Maps {
+    let (o, d) = camera_ray_batch(&cfg.camera, &[(0.3, -0.1)], side, side, device);
+    let rays = side * side;
+    let mut maps: [Vec<f32>; 4] = Default::default();
+    let mut start = 0;
+    while start < rays {
+        let n = chunk.min(rays - start);
+        let out: RenderOutput = render(
+            cfg,
+            field,
+            o.clone().narrow(1, start, n),
+            d.clone().narrow(1, start, n),
+            Some(lighting),
+            RenderWants {
+                albedo: true,
+                normals: true,
+                shading: true,
+                features: false,
+                depth: false,
+            },
+            false,
+        );
+        for (m, t) in maps.iter_mut().zip([
+            out.albedo.expect("asked"),
+            out.normals.expect("asked"),
+            out.diffuse.expect("asked"),
+            out.specular.expect("asked"),
+        ]) {
+            m.extend(to_f32_vec(t));
+        }
+        start += n;
+    }
+    Maps(maps)
+}
+
+fn relative_rms(got: &[f32], want: &[f32]) -> f64 {
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    for (g, w) in got.iter().zip(want) {
+        num += (f64::from(*g) - f64::from(*w)).powi(2);
+        den += f64::from(*w).powi(2);
+    }
+    (num / den.max(1e-30)).sqrt()
+}
+
+fn measure_scene(
+    scene: &str,
+    field: &impl Field,
+    lighting: &Lighting,
+    settings: &SamplingSettings,
+    device: &Device,
+    rows: &mut Vec<SamplingRow>,
+) {
+    let reference_cfg = RendererConfig::new()
+        .with_stratified(settings.reference)
+        .with_importance(0);
+    let reference = render_chunked(
+        &reference_cfg,
+        field,
+        settings.side,
+        lighting,
+        settings.chunk,
+        device,
+    );
+    for &count in &settings.counts {
+        for importance in [0, count] {
+            let cfg = RendererConfig::new()
+                .with_stratified(count)
+                .with_importance(importance);
+            let start = Instant::now();
+            let got = render_chunked(&cfg, field, settings.side, lighting, settings.chunk, device);
+            let ms = start.elapsed().as_secs_f64() * 1e3;
+            let error = std::array::from_fn(|k| relative_rms(&got.0[k], &reference.0[k]));
+            rows.push(SamplingRow {
+                scene: scene.to_string(),
+                stratified: count,
+                importance,
+                ms,
+                error,
+            });
+        }
+    }
+}
+
+/// Runs the report under `lighting` (batch 1, exponents matching 4 specular lobes).
+pub fn run(settings: &SamplingSettings, lighting: &Lighting, device: &Device) -> Vec<SamplingRow> {
+    let mut rows = Vec::new();
+    let lobes = lighting.maps.len();
+    for seed in 0..settings.random_fields {
+        device.seed(seed as u64);
+        let net = NeiifConfig::new()
+            .with_w_dim(64)
+            .with_width(64)
+            .with_head_width(64)
+            .with_specular_lobes(lobes)
+            .init(device);
+        let w = Tensor::<2>::random([1, 64], Distribution::Normal(0.0, 1.0), device);
+        let field = LatentField { field: &net, w };
+        let name = format!("random NeIIF {seed} (width 64)");
+        measure_scene(&name, &field, lighting, settings, device, &mut rows);
+    }
+    for (name, softness, peak) in [
+        ("soft sphere (softness 0.01, peak 60)", 0.01, 60.0),
+        ("hard sphere (softness 0.001, peak 1e4)", 0.001, 1e4),
+    ] {
+        let sphere = SoftSphere {
+            radius: 0.3,
+            softness,
+            peak,
+            albedo: [0.8, 0.5, 0.3],
+            specular_weights: (0..lobes).map(|i| 0.2 / (i + 1) as f32).collect(),
+        };
+        measure_scene(name, &sphere, lighting, settings, device, &mut rows);
+    }
+    rows
+}
+
+/// The report as a Markdown table.
+pub fn to_markdown(rows: &[SamplingRow]) -> String {
+    let mut s = String::from(
+        "| scene | stratified | importance | ms | A rel RMS | N rel RMS | D rel RMS | S rel RMS |\n|---|---|---|---|---|---|---|---|\n",
+    );
+    for r in rows {
+        s.push_str(&format!(
+            "| {} | {} | {} | {:.0} | {:.2e} | {:.2e} | {:.2e} | {:.2e} |\n",
+            r.scene,
+            r.stratified,
+            r.importance,
+            r.ms,
+            r.error[0],
+            r.error[1],
+            r.error[2],
+            r.error[3]
+        ));
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::light_lookup::LightMapBatch;
+    use volux_envmap::LightMap;
+
+    #[test]
+    fn error_falls_with_more_samples_on_a_sphere() {
+        let device = Device::flex();
+        let maps: Vec<LightMap> = [1u32, 16]
+            .iter()
+            .map(|&n| {
+                let texels = (0..32 * 16)
+                    .map(|i| [1.0 + (i % 32) as f32 / 32.0, 1.0, 0.5])
+                    .collect();
+                LightMap::new(n, 32, 16, texels)
+            })
+            .collect();
+        let lighting = Lighting::new(
+            maps.iter()
+                .map(|m| LightMapBatch::new(&[m], &device).unwrap())
+                .collect(),
+            None,
+        )
+        .unwrap();
+        let settings = SamplingSettings {
+            side: 8,
+            counts: vec![4, 32],
+            reference: 256,
+            random_fields: 1,
+            chunk: 64,
+        };
+        let rows = run(&settings, &lighting, &device);
+        assert_eq!(rows.len(), 3 * 4);
+        for scene in rows.chunks(4) {
+            // [4 strat, 4+4, 32 strat, 32+32]: 32 stratified beats 4 on every map that 4 gets
+            // wrong (a hard sphere's constant albedo is exact, to rounding, with any count).
+            for k in (0..4).filter(|&k| scene[0].error[k] > 1e-5) {
+                assert!(
+                    scene[2].error[k] < scene[0].error[k],
+                    "{}: map {k}: {:?} vs {:?}",
+                    scene[0].scene,
+                    scene[2].error,
+                    scene[0].error
+                );
+            }
+        }
+        assert!(to_markdown(&rows).lines().count() == 2 + rows.len());
+    }
+}
