@@ -6,6 +6,8 @@
 
 use burn::config::Config;
 use burn::module::{Module, Param};
+use burn::tensor::module::{conv_transpose2d, conv2d};
+use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
 use burn::tensor::{Device, Distribution, Tensor};
 
 /// Configuration of an [`EqualizedLinear`] layer.
@@ -85,6 +87,163 @@ impl EqualizedLinear {
     }
 }
 
+/// Configuration of an [`EqualizedConv2d`] layer.
+#[derive(Config, Debug)]
+pub struct EqualizedConv2dConfig {
+    /// Input channels.
+    pub channels_in: usize,
+    /// Output channels.
+    pub channels_out: usize,
+    /// Kernel height and width (odd for [`EqualizedConv2d::forward`]'s 'same' padding).
+    pub kernel_size: usize,
+    /// Learning-rate multiplier (1 everywhere in the discriminators).
+    #[config(default = 1.0)]
+    pub lr_multiplier: f64,
+    /// Initial value of the effective bias.
+    #[config(default = 0.0)]
+    pub bias_init: f64,
+    /// Whether the layer has a bias.
+    #[config(default = true)]
+    pub bias: bool,
+}
+
+/// A 2D convolution with equalized learning rate: `y = conv(x, g W) + b_mul b`, with
+/// `g = lr_multiplier / sqrt(channels_in * k * k)` (StyleGAN2's `Conv2dLayer`).
+#[derive(Module, Debug)]
+pub struct EqualizedConv2d {
+    /// Stored weight `[channels_out, channels_in, k, k]`, initialised `N(0, 1 / lr_multiplier^2)`.
+    pub weight: Param<Tensor<4>>,
+    /// Stored bias `[channels_out]`, initialised `bias_init / lr_multiplier`.
+    pub bias: Option<Param<Tensor<1>>>,
+    /// `lr_multiplier / sqrt(channels_in * k * k)`.
+    pub weight_gain: f64,
+    /// `lr_multiplier`.
+    pub bias_gain: f64,
+}
+
+impl EqualizedConv2dConfig {
+    /// A layer with freshly initialised parameters on `device`.
+    pub fn init(&self, device: &Device) -> EqualizedConv2d {
+        let k = self.kernel_size;
+        let weight = Tensor::<4>::random(
+            [self.channels_out, self.channels_in, k, k],
+            Distribution::Normal(0.0, 1.0 / self.lr_multiplier),
+            device,
+        );
+        let bias = self.bias.then(|| {
+            Param::from_tensor(
+                Tensor::<1>::ones([self.channels_out], device)
+                    .mul_scalar(self.bias_init / self.lr_multiplier),
+            )
+        });
+        EqualizedConv2d {
+            weight: Param::from_tensor(weight),
+            bias,
+            weight_gain: self.lr_multiplier / ((self.channels_in * k * k) as f64).sqrt(),
+            bias_gain: self.lr_multiplier,
+        }
+    }
+}
+
+impl EqualizedConv2d {
+    /// The weight the layer applies, `[channels_out, channels_in, k, k]`.
+    pub fn effective_weight(&self) -> Tensor<4> {
+        self.weight.val().mul_scalar(self.weight_gain)
+    }
+
+    /// The bias the layer adds, `[channels_out]`, if any.
+    pub fn effective_bias(&self) -> Option<Tensor<1>> {
+        self.bias
+            .as_ref()
+            .map(|b| b.val().mul_scalar(self.bias_gain))
+    }
+
+    /// Kernel height and width.
+    pub fn kernel_size(&self) -> usize {
+        self.weight.dims()[3]
+    }
+
+    /// Stride 1 with 'same' padding (`k / 2` on every side):
+    /// `[batch, channels_in, h, w] -> [batch, channels_out, h, w]`.
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        let k = self.kernel_size();
+        assert!(
+            !k.is_multiple_of(2),
+            "'same' padding needs an odd kernel, got {k}"
+        );
+        self.forward_strided(x, 1, k / 2)
+    }
+
+    /// The convolution with any stride and symmetric zero padding:
+    /// `[batch, channels_in, h, w] -> [batch, channels_out, (h + 2 padding - k) / stride + 1, ..]`.
+    pub fn forward_strided(&self, x: Tensor<4>, stride: usize, padding: usize) -> Tensor<4> {
+        conv2d(
+            x,
+            self.effective_weight(),
+            self.effective_bias(),
+            ConvOptions::new([stride, stride], [padding, padding], [1, 1], 1),
+        )
+    }
+
+    /// The adjoint (transpose) of the linear part of [`Self::forward_strided`] with the same
+    /// `stride` and `padding`: maps a gradient `[batch, channels_out, h', w']` with respect to
+    /// the output back to one with respect to an input of spatial size `input_hw`,
+    /// `[batch, channels_in, input_hw[0], input_hw[1]]`. A transposed convolution with the same
+    /// weights, so it is differentiable in the weights.
+    pub fn adjoint(
+        &self,
+        y: Tensor<4>,
+        stride: usize,
+        padding: usize,
+        input_hw: [usize; 2],
+    ) -> Tensor<4> {
+        conv_adjoint(y, self.effective_weight(), stride, padding, input_hw)
+    }
+}
+
+/// The adjoint of `conv2d(x, weight, stride, padding)` (no bias, one group) for an `x` of
+/// spatial size `input_hw`: `conv_transpose2d` with the same weight, stride and padding, and
+/// the output padding that restores `input_hw`.
+pub(crate) fn conv_adjoint(
+    y: Tensor<4>,
+    weight: Tensor<4>,
+    stride: usize,
+    padding: usize,
+    input_hw: [usize; 2],
+) -> Tensor<4> {
+    conv_transpose_to(y, weight, stride, padding, 1, input_hw)
+}
+
+/// `conv_transpose2d` whose output has spatial size `out_hw` (the output padding is chosen to
+/// give it); `weight` is `[channels_in_of_y, channels_out / groups, k, k]`.
+pub(crate) fn conv_transpose_to(
+    y: Tensor<4>,
+    weight: Tensor<4>,
+    stride: usize,
+    padding: usize,
+    groups: usize,
+    out_hw: [usize; 2],
+) -> Tensor<4> {
+    let [_, _, hy, wy] = y.dims();
+    let [_, _, kh, kw] = weight.dims();
+    let pad_out = |n_in: usize, k: usize, n_out: usize| {
+        let base = (n_in - 1) * stride + k - 2 * padding;
+        assert!(
+            n_out >= base && n_out - base < stride.max(1),
+            "no output padding turns {n_in} into {n_out} (stride {stride}, padding {padding}, kernel {k})"
+        );
+        n_out - base
+    };
+    let options = ConvTransposeOptions::new(
+        [stride, stride],
+        [padding, padding],
+        [pad_out(hy, kh, out_hw[0]), pad_out(wy, kw, out_hw[1])],
+        [1, 1],
+        groups,
+    );
+    conv_transpose2d(y, weight, None, options)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -152,5 +311,102 @@ mod tests {
         }
         let gb = to_f32_vec(layer.bias.as_ref().unwrap().val().grad(&grads).unwrap());
         assert!(gb.iter().all(|v| (v - 0.01).abs() < 1e-7), "{gb:?}");
+    }
+
+    /// Reference convolution in f64 loops: `[b, ci, h, w]` input, `[co, ci, k, k]` weight.
+    fn conv_ref(
+        x: &[f64],
+        [b, ci, h, w]: [usize; 4],
+        wt: &[f64],
+        [co, k]: [usize; 2],
+        stride: usize,
+        pad: usize,
+    ) -> (Vec<f64>, [usize; 2]) {
+        let ho = (h + 2 * pad - k) / stride + 1;
+        let wo = (w + 2 * pad - k) / stride + 1;
+        let mut y = vec![0.0; b * co * ho * wo];
+        for n in 0..b {
+            for o in 0..co {
+                for i in 0..ho {
+                    for j in 0..wo {
+                        let mut acc = 0.0;
+                        for c in 0..ci {
+                            for u in 0..k {
+                                for v in 0..k {
+                                    let (r, s) = (i * stride + u, j * stride + v);
+                                    if r < pad || s < pad || r - pad >= h || s - pad >= w {
+                                        continue;
+                                    }
+                                    acc += x[((n * ci + c) * h + r - pad) * w + s - pad]
+                                        * wt[((o * ci + c) * k + u) * k + v];
+                                }
+                            }
+                        }
+                        y[((n * co + o) * ho + i) * wo + j] = acc;
+                    }
+                }
+            }
+        }
+        (y, [ho, wo])
+    }
+
+    #[test]
+    fn conv_matches_an_f64_loop_with_gain_and_bias() {
+        let device = Device::flex();
+        let layer = EqualizedConv2dConfig::new(3, 4, 3)
+            .with_bias_init(0.5)
+            .init(&device);
+        let shape = [2, 3, 7, 6];
+        let x = Tensor::<4>::random(shape, Distribution::Normal(0.0, 1.0), &device);
+        let xv: Vec<f64> = to_f32_vec(x.clone()).into_iter().map(f64::from).collect();
+        let wv: Vec<f64> = to_f32_vec(layer.effective_weight())
+            .into_iter()
+            .map(f64::from)
+            .collect();
+        for (stride, pad) in [(1, 1), (2, 0), (2, 1)] {
+            let y = to_f32_vec(layer.forward_strided(x.clone(), stride, pad));
+            let (want, _) = conv_ref(&xv, shape, &wv, [4, 3], stride, pad);
+            assert_eq!(y.len(), want.len());
+            for (a, b) in y.iter().zip(&want) {
+                assert!(
+                    (f64::from(*a) - (b + 0.5)).abs() < 1e-4,
+                    "{a} vs {}",
+                    b + 0.5
+                );
+            }
+        }
+        assert_eq!(layer.forward(x).dims(), [2, 4, 7, 6]);
+        // The gain is 1 / sqrt(fan_in) with fan_in = 3 * 3 * 3.
+        assert!((layer.weight_gain - 1.0 / 27f64.sqrt()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn conv_adjoint_is_the_transpose() {
+        // <A x, y> = <x, A^T y> for stride 1 and 2, with even and odd input sizes.
+        let device = Device::flex();
+        let layer = EqualizedConv2dConfig::new(3, 5, 3).init(&device);
+        for (stride, pad, hw) in [
+            (1, 1, [6, 5]),
+            (2, 0, [9, 9]),
+            (2, 0, [8, 7]),
+            (2, 1, [6, 6]),
+        ] {
+            let x = Tensor::<4>::random(
+                [2, 3, hw[0], hw[1]],
+                Distribution::Normal(0.0, 1.0),
+                &device,
+            );
+            let ax = layer.forward_strided(x.clone(), stride, pad)
+                - layer.effective_bias().unwrap().reshape([1, 5, 1, 1]);
+            let y = Tensor::<4>::random(ax.dims(), Distribution::Normal(0.0, 1.0), &device);
+            let aty = layer.adjoint(y.clone(), stride, pad, hw);
+            assert_eq!(aty.dims(), x.dims());
+            let lhs: f32 = (ax * y).sum().into_scalar();
+            let rhs: f32 = (x * aty).sum().into_scalar();
+            assert!(
+                (lhs - rhs).abs() < 1e-4 * lhs.abs().max(1.0),
+                "stride {stride} pad {pad} {hw:?}: {lhs} vs {rhs}"
+            );
+        }
     }
 }

@@ -2,11 +2,15 @@
 //! differentiable light-map look-up ([`light_lookup`]), equalized-learning-rate layers
 //! ([`equalized`]), the mapping network ([`mapping`]), the positional encoding
 //! ([`positional_encoding`]), camera rays and stratified samples ([`ray_sampling`]) and
-//! compositing along rays ([`ray_marching`]); the NeIIF, importance sampling, upsampler,
-//! relighting network and discriminators follow.
+//! compositing along rays ([`ray_marching`]), StyleGAN2's blur filter and its adjoints
+//! ([`blur`]) and the residual discriminator with its explicit input gradient for R1
+//! ([`discriminator`]); the NeIIF, importance sampling, upsampler and relighting network
+//! follow.
 
 pub mod analytic;
 pub mod backend;
+pub mod blur;
+pub mod discriminator;
 pub mod equalized;
 pub mod light_lookup;
 pub mod mapping;
