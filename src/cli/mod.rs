@@ -2,6 +2,7 @@
 
 mod backend;
 mod envmap;
+mod model;
 
 use clap::{Parser, Subcommand};
 
@@ -21,6 +22,9 @@ pub enum Command {
     /// HDR environment maps: inspect, preconvolve into light maps, measure accuracy.
     #[command(subcommand)]
     Envmap(envmap::EnvmapCommand),
+    /// The networks: parameter counts, the renderer's error against samples per ray, speed.
+    #[command(subcommand)]
+    Model(model::ModelCommand),
     /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
     Backend(backend::BackendArgs),
 }
@@ -28,6 +32,7 @@ pub enum Command {
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Envmap(cmd) => envmap::run(cmd),
+        Command::Model(cmd) => model::run(cmd),
         Command::Backend(args) => backend::run(args),
     }
 }

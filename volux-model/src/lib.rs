@@ -1,17 +1,22 @@
-//! VoLux-GAN's networks as Burn modules. Today: backend selection ([`backend`]), the
-//! differentiable light-map look-up ([`light_lookup`]), equalized-learning-rate layers
-//! ([`equalized`]), the mapping network ([`mapping`]), the positional encoding
-//! ([`positional_encoding`]), camera rays and stratified samples ([`ray_sampling`]) and
-//! compositing along rays ([`ray_marching`]), StyleGAN2's blur filter and its adjoints
-//! ([`blur`]) and the residual discriminator with its explicit input gradient for R1
-//! ([`discriminator`]); the NeIIF, importance sampling, upsampler and relighting network
-//! follow.
+//! VoLux-GAN's networks as Burn modules, one module per concept of the paper.
+//!
+//! - Generator (section 3, appendix B): [`mapping`] network, [`positional_encoding`],
+//!   [`modulated`] layers, the [`neiif`] (density, forward-mode normals, albedo, specular
+//!   weights, features), volume rendering ([`ray_sampling`] -> [`volume_rendering`] ->
+//!   [`ray_marching`], with the [`light_lookup`] for `D` and `S`), the [`upsampler`], the
+//!   [`relighting`] U-Net, all tied together in [`generator`] with its `small` and `paper`
+//!   presets.
+//! - Discriminators (section 3.4): [`equalized`] layers, StyleGAN2's [`blur`], the residual
+//!   [`discriminator`] with its explicit input gradient and the R1 penalty.
+//! - Checks: [`backend`] (device selection and a self-check), [`analytic`] fields with known
+//!   answers, the samples-per-ray [`sampling_report`].
 
 pub mod analytic;
 pub mod backend;
 pub mod blur;
 pub mod discriminator;
 pub mod equalized;
+pub mod generator;
 pub mod light_lookup;
 pub mod mapping;
 pub mod modulated;
@@ -19,6 +24,7 @@ pub mod neiif;
 pub mod positional_encoding;
 pub mod ray_marching;
 pub mod ray_sampling;
+pub mod relighting;
 pub mod sampling_report;
 pub mod upsampler;
 pub mod volume_rendering;

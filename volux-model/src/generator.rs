@@ -1,0 +1,665 @@
+//! The generator (paper section 3, figure 2): `z` -> mapping network -> `w`; the NeIIF
+//! rendered by the volume renderer at low resolution into `A_lo, N_lo, D_lo, S_lo, F_lo`,
+//! depth and opacity; the upsampler gives `A_hi, F_hi`; the relighting network gives
+//! `I_relit` from `[A_hi, D_up, S_up, F_hi]`.
+//!
+//! A forward pass computes only what [`GeneratorWants`] asks for and what that needs: stage 1
+//! (albedo, normals, path loss) runs no light-map look-up and no relighting network; a sampler
+//! that wants only `I_relit` gets no depth. Presets: [`GeneratorConfig::small`] (trains on two
+//! CPU cores) and [`GeneratorConfig::paper`].
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::mapping::{MappingNetwork, MappingNetworkConfig};
+use crate::neiif::{Neiif, NeiifConfig};
+use crate::ray_sampling::{CameraConfig, camera_basis, camera_ray_batch};
+use crate::relighting::{RelightingConfig, RelightingNet};
+use crate::upsampler::{Upsampler, UpsamplerConfig, bilinear_upsample};
+use crate::volume_rendering::{
+    LatentField, Lighting, RenderOutput, RenderWants, RendererConfig, render,
+};
+
+/// Sizes of every part of a generator.
+#[derive(Config, Debug)]
+pub struct GeneratorConfig {
+    pub mapping: MappingNetworkConfig,
+    pub neiif: NeiifConfig,
+    pub renderer: RendererConfig,
+    /// Side of the volume-rendered images (64 in the paper).
+    pub volume_resolution: usize,
+    /// Side of `A_hi` and `I_relit` (a power-of-two multiple of `volume_resolution`).
+    pub output_resolution: usize,
+    /// Channels of the upsampler (the first three are the albedo).
+    pub upsampler_channels: usize,
+    /// Channels per level of the relighting U-Net, finest first.
+    pub relighting_channels: Vec<usize>,
+}
+
+/// Why a generator cannot be built or run.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum GeneratorError {
+    #[error("output_resolution {output} must be volume_resolution {volume} times a power of two")]
+    Resolution { volume: usize, output: usize },
+    #[error("mapping w_dim {mapping} differs from the NeIIF's w_dim {neiif}")]
+    WDim { mapping: usize, neiif: usize },
+    #[error(
+        "relighting U-Net with {levels} levels needs a resolution divisible by {divisor}, got {resolution}"
+    )]
+    UnetResolution {
+        levels: usize,
+        divisor: usize,
+        resolution: usize,
+    },
+    #[error("{what} needs lighting (light maps and yaw per batch element)")]
+    NoLighting { what: &'static str },
+    #[error("the field blends {lobes} specular lobes but {maps} light maps were given")]
+    Lobes { lobes: usize, maps: usize },
+    #[error("batch mismatch: z has {z}, poses {poses}, lighting {lighting}")]
+    Batch {
+        z: usize,
+        poses: usize,
+        lighting: usize,
+    },
+}
+
+impl GeneratorConfig {
+    /// A model that trains on two CPU cores: 32x32 volume, 64x64 output, NeIIF width 64,
+    /// 12 + 12 samples per ray, z and w of 128.
+    pub fn small() -> Self {
+        Self::new(
+            MappingNetworkConfig::new().with_z_dim(128).with_w_dim(128),
+            NeiifConfig::new()
+                .with_w_dim(128)
+                .with_width(64)
+                .with_head_width(64),
+            RendererConfig::new()
+                .with_stratified(12)
+                .with_importance(12),
+            32,
+            64,
+            32,
+            vec![16, 32],
+        )
+    }
+
+    /// The paper's model: z and w of 512, NeIIF 6x256, a 64x64 volume, `output_resolution`
+    /// (128 for CelebA, 256 for FFHQ), 24 + 24 samples per ray.
+    pub fn paper(output_resolution: usize) -> Self {
+        Self::new(
+            MappingNetworkConfig::new().with_z_dim(512).with_w_dim(512),
+            NeiifConfig::new().with_w_dim(512),
+            RendererConfig::new()
+                .with_stratified(24)
+                .with_importance(24),
+            64,
+            output_resolution,
+            128,
+            vec![64, 128],
+        )
+    }
+
+    /// Checks that the sizes fit together.
+    pub fn validate(&self) -> Result<(), GeneratorError> {
+        let (v, o) = (self.volume_resolution, self.output_resolution);
+        if v == 0 || o < v || o % v != 0 || !(o / v).is_power_of_two() {
+            return Err(GeneratorError::Resolution {
+                volume: v,
+                output: o,
+            });
+        }
+        if self.mapping.w_dim != self.neiif.w_dim {
+            return Err(GeneratorError::WDim {
+                mapping: self.mapping.w_dim,
+                neiif: self.neiif.w_dim,
+            });
+        }
+        let levels = self.relighting_channels.len();
+        let divisor = 1 << levels.saturating_sub(1);
+        if levels == 0 || o % divisor != 0 {
+            return Err(GeneratorError::UnetResolution {
+                levels,
+                divisor,
+                resolution: o,
+            });
+        }
+        Ok(())
+    }
+
+    /// A generator with freshly initialised parameters on `device`.
+    pub fn init(&self, device: &Device) -> Result<Generator, GeneratorError> {
+        self.validate()?;
+        let neiif = self.neiif.init(device);
+        let blocks = (self.output_resolution / self.volume_resolution).trailing_zeros() as usize;
+        let upsampler = UpsamplerConfig::new(
+            self.mapping.w_dim,
+            3 + neiif.feature_dim(),
+            self.upsampler_channels,
+            blocks,
+        )
+        .init(device);
+        let relighting = RelightingConfig::new(self.upsampler_channels - 3)
+            .with_channels(self.relighting_channels.clone())
+            .init(device);
+        Ok(Generator {
+            mapping: self.mapping.init(device),
+            neiif,
+            upsampler,
+            relighting,
+            renderer: self.renderer.clone(),
+            volume_resolution: self.volume_resolution,
+        })
+    }
+}
+
+/// The generator.
+#[derive(Module, Debug)]
+pub struct Generator {
+    pub mapping: MappingNetwork,
+    pub neiif: Neiif,
+    pub upsampler: Upsampler,
+    pub relighting: RelightingNet,
+    #[module(skip)]
+    pub renderer: RendererConfig,
+    pub volume_resolution: usize,
+}
+
+/// Which outputs a forward pass must return.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct GeneratorWants {
+    pub albedo_lo: bool,
+    pub normals_lo: bool,
+    /// `D_lo` and `S_lo`.
+    pub shading_lo: bool,
+    pub features_lo: bool,
+    pub depth: bool,
+    pub albedo_hi: bool,
+    pub relit: bool,
+}
+
+impl GeneratorWants {
+    /// Everything.
+    pub const ALL: Self = Self {
+        albedo_lo: true,
+        normals_lo: true,
+        shading_lo: true,
+        features_lo: true,
+        depth: true,
+        albedo_hi: true,
+        relit: true,
+    };
+    /// Stage 1 of the schedule: `L_A` on both albedos, `L_G` on normals, the path loss.
+    pub const STAGE1: Self = Self {
+        albedo_lo: true,
+        normals_lo: true,
+        shading_lo: false,
+        features_lo: false,
+        depth: false,
+        albedo_hi: true,
+        relit: false,
+    };
+
+    fn needs_upsampler(self) -> bool {
+        self.albedo_hi || self.relit
+    }
+
+    fn needs_shading(self) -> bool {
+        self.shading_lo || self.relit
+    }
+}
+
+/// A batch of generated images, `[batch, channels, h, w]`; what was not wanted is `None`.
+/// Low-resolution maps are composited over the background (`A_lo` over `background`, the rest
+/// over 0); normals are in camera space (+z towards the camera).
+#[derive(Clone, Debug)]
+pub struct GeneratorOutput {
+    /// `[batch, w_dim]`.
+    pub w: Tensor<2>,
+    /// `[batch, 1, h, w]`.
+    pub opacity: Tensor<4>,
+    pub depth: Option<Tensor<4>>,
+    pub albedo_lo: Option<Tensor<4>>,
+    pub normals_lo: Option<Tensor<4>>,
+    pub diffuse_lo: Option<Tensor<4>>,
+    pub specular_lo: Option<Tensor<4>>,
+    pub features_lo: Option<Tensor<4>>,
+    /// `[batch, 3, H, W]` in [0, 1] (up to the learned residual).
+    pub albedo_hi: Option<Tensor<4>>,
+    /// `[batch, 3, H, W]`, sRGB mapped to [-1, 1].
+    pub relit: Option<Tensor<4>>,
+}
+
+/// `[b, rays, c] -> [b, c, side, side]`.
+fn image(x: Tensor<3>, side: usize) -> Tensor<4> {
+    let [b, _, c] = x.dims();
+    x.swap_dims(1, 2).reshape([b, c, side, side])
+}
+
+/// World-space `[b, rays, 3]` to each pose's camera space.
+fn to_camera_space(
+    n: Tensor<3>,
+    camera: &CameraConfig,
+    poses: &[(f64, f64)],
+    device: &Device,
+) -> Tensor<3> {
+    let basis: Vec<f32> = poses
+        .iter()
+        .flat_map(|&(yaw, pitch)| {
+            let [r, u, b] = camera_basis(camera, yaw, pitch);
+            // Columns are the axes: n [1, 3] x M [3, 3] = (n.r, n.u, n.b).
+            (0..3).flat_map(move |k| [r[k] as f32, u[k] as f32, b[k] as f32])
+        })
+        .collect();
+    let m = Tensor::<3>::from_data(TensorData::new(basis, [poses.len(), 3, 3]), device);
+    n.matmul(m)
+}
+
+impl Generator {
+    /// Side of the high-resolution outputs.
+    pub fn output_resolution(&self) -> usize {
+        self.volume_resolution * self.upsampler.factor()
+    }
+
+    /// Renders the NeIIF of latents `w: [batch, w_dim]` along given rays `[batch, rays, 3]`
+    /// (the low-resolution half of the generator, on any set of rays).
+    pub fn render_rays(
+        &self,
+        w: Tensor<2>,
+        origins: Tensor<3>,
+        dirs: Tensor<3>,
+        lighting: Option<&Lighting>,
+        wants: RenderWants,
+        jitter: bool,
+    ) -> Result<RenderOutput, GeneratorError> {
+        if wants.shading {
+            let lighting = lighting.ok_or(GeneratorError::NoLighting {
+                what: "diffuse and specular shading",
+            })?;
+            let lobes = self.neiif.specular_lobes();
+            if lighting.maps.len() != lobes {
+                return Err(GeneratorError::Lobes {
+                    lobes,
+                    maps: lighting.maps.len(),
+                });
+            }
+            let (b, lb) = (w.dims()[0], lighting.maps[0].batch());
+            if b != lb {
+                return Err(GeneratorError::Batch {
+                    z: b,
+                    poses: origins.dims()[0],
+                    lighting: lb,
+                });
+            }
+        }
+        let field = LatentField {
+            field: &self.neiif,
+            w,
+        };
+        Ok(render(
+            &self.renderer,
+            &field,
+            origins,
+            dirs,
+            lighting,
+            wants,
+            jitter,
+        ))
+    }
+
+    /// Generates `z: [batch, z_dim]` seen from `poses` (one `(yaw, pitch)` per element) under
+    /// `lighting`, over a background colour (the dataset's), computing only what `wants` needs.
+    /// `fade` holds the upsampler's fade-in weights (`None`: fully grown); `jitter` randomises
+    /// ray samples (training).
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward(
+        &self,
+        z: Tensor<2>,
+        poses: &[(f64, f64)],
+        lighting: Option<&Lighting>,
+        background: [f32; 3],
+        wants: GeneratorWants,
+        fade: Option<&[f64]>,
+        jitter: bool,
+    ) -> Result<GeneratorOutput, GeneratorError> {
+        let device = z.device();
+        let b = z.dims()[0];
+        if poses.len() != b {
+            return Err(GeneratorError::Batch {
+                z: b,
+                poses: poses.len(),
+                lighting: lighting.map_or(0, |l| l.maps[0].batch()),
+            });
+        }
+        let w = self.mapping.forward(z);
+        let side = self.volume_resolution;
+        let up = wants.needs_upsampler();
+        let render_wants = RenderWants {
+            albedo: wants.albedo_lo || up,
+            normals: wants.normals_lo,
+            shading: wants.needs_shading(),
+            features: wants.features_lo || up,
+            depth: wants.depth,
+        };
+        let (origins, dirs) = camera_ray_batch(&self.renderer.camera, poses, side, side, &device);
+        let r = self.render_rays(w.clone(), origins, dirs, lighting, render_wants, jitter)?;
+        let opacity = r.opacity.clone().reshape([b, 1, side, side]);
+        let bg = Tensor::<1>::from_floats(background.as_slice(), &device).reshape([1, 3, 1, 1]);
+        let clear = opacity.clone().neg().add_scalar(1.0);
+        let albedo_lo = r.albedo.map(|a| image(a, side) + clear.clone() * bg);
+        let features_lo = r.features.map(|f| image(f, side));
+        let diffuse_lo = r.diffuse.map(|d| image(d, side));
+        let specular_lo = r.specular.map(|s| image(s, side));
+        let normals_lo = r.normals.map(|n| {
+            image(
+                to_camera_space(n, &self.renderer.camera, poses, &device),
+                side,
+            )
+        });
+        let depth = r.depth.map(|d| d.reshape([b, 1, side, side]));
+        let (mut albedo_hi, mut relit) = (None, None);
+        if up {
+            let x = Tensor::cat(
+                vec![
+                    albedo_lo.clone().expect("rendered for the upsampler"),
+                    features_lo.clone().expect("rendered for the upsampler"),
+                ],
+                1,
+            );
+            let hi = self.upsampler.forward(x, w.clone(), fade);
+            let c = hi.dims()[1];
+            let a_hi = hi.clone().narrow(1, 0, 3);
+            if wants.relit {
+                let f = self.upsampler.factor();
+                let d_up = bilinear_upsample(diffuse_lo.clone().expect("shading rendered"), f);
+                let s_up = bilinear_upsample(specular_lo.clone().expect("shading rendered"), f);
+                relit =
+                    Some(
+                        self.relighting
+                            .forward(a_hi.clone(), d_up, s_up, hi.narrow(1, 3, c - 3)),
+                    );
+            }
+            albedo_hi = wants.albedo_hi.then_some(a_hi);
+        }
+        Ok(GeneratorOutput {
+            w,
+            opacity,
+            depth,
+            albedo_lo: albedo_lo.filter(|_| wants.albedo_lo),
+            normals_lo,
+            diffuse_lo: diffuse_lo.filter(|_| wants.shading_lo),
+            specular_lo: specular_lo.filter(|_| wants.shading_lo),
+            features_lo: features_lo.filter(|_| wants.features_lo),
+            albedo_hi,
+            relit,
+        })
+    }
+
+    /// Parameter counts of each part, in the order mapping, NeIIF, upsampler, relighting.
+    pub fn parameter_counts(&self) -> [(&'static str, usize); 4] {
+        [
+            ("mapping network", self.mapping.num_params()),
+            ("NeIIF", self.neiif.num_params()),
+            ("upsampler", self.upsampler.num_params()),
+            ("relighting network", self.relighting.num_params()),
+        ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::to_f32_vec;
+    use crate::light_lookup::LightMapBatch;
+    use burn::tensor::Distribution;
+    use volux_envmap::LightMap;
+
+    fn lighting(batch: usize, device: &Device) -> Lighting {
+        let maps: Vec<LightMap> = [1u32, 16, 32, 64]
+            .iter()
+            .map(|&n| {
+                let texels = (0..16 * 8)
+                    .map(|i| [1.0 + (i % 16) as f32, 2.0, 1e5 * f32::from(i == 40)])
+                    .collect();
+                LightMap::new(n, 16, 8, texels)
+            })
+            .collect();
+        let batches = maps
+            .iter()
+            .map(|m| LightMapBatch::new(&vec![m; batch], device).unwrap())
+            .collect();
+        let yaw = Tensor::random([batch], Distribution::Uniform(0.0, 6.3), device);
+        Lighting::new(batches, Some(yaw)).unwrap()
+    }
+
+    /// The named parts all received finite, non-zero gradients.
+    fn check_grads(g: &Generator, grads: &burn::tensor::Gradients, parts: &[&str]) {
+        let all: [(&str, Vec<Option<Vec<f32>>>); 4] = [
+            (
+                "mapping",
+                vec![g.mapping.layers[0].weight.val().grad(grads).map(to_f32_vec)],
+            ),
+            (
+                "neiif",
+                vec![
+                    g.neiif.layers[0].weight.val().grad(grads).map(to_f32_vec),
+                    g.neiif.head_out.weight.val().grad(grads).map(to_f32_vec),
+                ],
+            ),
+            (
+                "upsampler",
+                vec![
+                    g.upsampler.blocks[0]
+                        .conv1
+                        .weight
+                        .val()
+                        .grad(grads)
+                        .map(to_f32_vec),
+                ],
+            ),
+            (
+                "relighting",
+                vec![g.relighting.out.weight.val().grad(grads).map(to_f32_vec)],
+            ),
+        ];
+        for (name, params) in all {
+            if !parts.contains(&name) {
+                continue;
+            }
+            for grad in params {
+                let grad = grad.unwrap_or_else(|| panic!("no gradient reached the {name}"));
+                assert!(
+                    grad.iter().all(|v| v.is_finite()),
+                    "{name}: non-finite gradient"
+                );
+                assert!(grad.iter().any(|v| *v != 0.0), "{name}: zero gradient");
+            }
+        }
+    }
+
+    #[test]
+    fn small_preset_gives_every_output_and_a_full_backward_pass() {
+        let device = Device::flex().autodiff();
+        let config = GeneratorConfig::small();
+        let g = config.init(&device).unwrap();
+        assert_eq!(g.output_resolution(), 64);
+        let counts = g.parameter_counts();
+        assert_eq!(
+            counts.iter().map(|c| c.1).sum::<usize>(),
+            Module::num_params(&g),
+            "{counts:?}"
+        );
+        let z = Tensor::<2>::random([2, 128], Distribution::Normal(0.0, 1.0), &device);
+        let light = lighting(2, &device);
+        let out = g
+            .forward(
+                z,
+                &[(0.0, 0.0), (0.4, -0.1)],
+                Some(&light),
+                [0.0; 3],
+                GeneratorWants::ALL,
+                None,
+                true,
+            )
+            .unwrap();
+        assert_eq!(out.opacity.dims(), [2, 1, 32, 32]);
+        for (name, t, c) in [
+            ("A_lo", &out.albedo_lo, 3),
+            ("N_lo", &out.normals_lo, 3),
+            ("D_lo", &out.diffuse_lo, 3),
+            ("S_lo", &out.specular_lo, 3),
+            ("F_lo", &out.features_lo, 64),
+            ("depth", &out.depth, 1),
+        ] {
+            assert_eq!(t.as_ref().unwrap().dims(), [2, c, 32, 32], "{name}");
+        }
+        assert_eq!(out.albedo_hi.as_ref().unwrap().dims(), [2, 3, 64, 64]);
+        assert_eq!(out.relit.as_ref().unwrap().dims(), [2, 3, 64, 64]);
+        let loss = out.relit.unwrap().mean()
+            + out.albedo_lo.unwrap().mean()
+            + out.normals_lo.unwrap().mean()
+            + out.albedo_hi.unwrap().mean();
+        let v: f32 = loss.clone().into_scalar();
+        assert!(v.is_finite());
+        check_grads(
+            &g,
+            &loss.backward(),
+            &["mapping", "neiif", "upsampler", "relighting"],
+        );
+    }
+
+    #[test]
+    fn stage_one_runs_without_lighting_or_relighting() {
+        let device = Device::flex().autodiff();
+        let g = GeneratorConfig::small().init(&device).unwrap();
+        let z = Tensor::<2>::random([1, 128], Distribution::Normal(0.0, 1.0), &device);
+        let out = g
+            .forward(
+                z,
+                &[(0.0, 0.0)],
+                None,
+                [1.0; 3],
+                GeneratorWants::STAGE1,
+                Some(&[0.5]),
+                true,
+            )
+            .unwrap();
+        assert!(out.relit.is_none() && out.diffuse_lo.is_none() && out.depth.is_none());
+        let loss = out.albedo_hi.unwrap().mean() + out.normals_lo.unwrap().mean();
+        check_grads(&g, &loss.backward(), &["mapping", "neiif", "upsampler"]);
+    }
+
+    #[test]
+    fn paper_preset_on_a_subset_of_rays_and_its_full_resolution_2d_half() {
+        let device = Device::flex().autodiff();
+        let config = GeneratorConfig::paper(128);
+        let g = config.init(&device).unwrap();
+        let counts = g.parameter_counts();
+        assert_eq!(counts[1].1, {
+            // 63 -> 256, five 256 -> 256 modulated layers (each with a 512 -> in affine), the
+            // density head, the 256 -> 256 -> 7 head.
+            let modulated = |i: usize| 512 * i + i + 256 * i + 256;
+            modulated(63) + 5 * modulated(256) + 257 + (256 * 256 + 256) + (256 * 7 + 7)
+        });
+        let z = Tensor::<2>::random([1, 512], Distribution::Normal(0.0, 1.0), &device);
+        let w = g.mapping.forward(z);
+        // 48 rays of the 64x64 image: its central row, and 16 rays more.
+        let (o, d) = camera_ray_batch(&config.renderer.camera, &[(0.2, 0.0)], 64, 64, &device);
+        let (o, d) = (o.narrow(1, 64 * 32, 48), d.narrow(1, 64 * 32, 48));
+        let light = lighting(1, &device);
+        let r = g
+            .render_rays(w.clone(), o, d, Some(&light), RenderWants::ALL, true)
+            .unwrap();
+        assert_eq!(r.features.as_ref().unwrap().dims(), [1, 48, 256]);
+        // The 2D half at full size: 64x64 features to 128x128 albedo and relit image.
+        let x = Tensor::<4>::random(
+            [1, 3 + 256, 64, 64],
+            Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let hi = g.upsampler.forward(x, w, None);
+        assert_eq!(hi.dims(), [1, 128, 128, 128]);
+        let shading =
+            Tensor::<4>::random([1, 3, 128, 128], Distribution::Uniform(0.0, 2.0), &device);
+        let relit = g.relighting.forward(
+            hi.clone().narrow(1, 0, 3),
+            shading.clone(),
+            shading,
+            hi.narrow(1, 3, 125),
+        );
+        assert_eq!(relit.dims(), [1, 3, 128, 128]);
+        let loss = relit.mean()
+            + r.diffuse.unwrap().mean()
+            + r.specular.unwrap().mean()
+            + r.normals.unwrap().mean();
+        check_grads(
+            &g,
+            &loss.backward(),
+            &["mapping", "neiif", "upsampler", "relighting"],
+        );
+    }
+
+    #[test]
+    fn bad_sizes_and_missing_lighting_are_errors() {
+        let device = Device::flex();
+        let bad = GeneratorConfig::small();
+        let bad = GeneratorConfig {
+            output_resolution: 96,
+            ..bad
+        };
+        assert_eq!(
+            bad.init(&device).unwrap_err(),
+            GeneratorError::Resolution {
+                volume: 32,
+                output: 96
+            }
+        );
+        let g = GeneratorConfig::small().init(&device).unwrap();
+        let z = Tensor::<2>::random([1, 128], Distribution::Normal(0.0, 1.0), &device);
+        let err = g
+            .forward(
+                z.clone(),
+                &[(0.0, 0.0)],
+                None,
+                [0.0; 3],
+                GeneratorWants::ALL,
+                None,
+                false,
+            )
+            .unwrap_err();
+        assert!(matches!(err, GeneratorError::NoLighting { .. }), "{err}");
+        let err = g
+            .forward(
+                z,
+                &[(0.0, 0.0), (0.1, 0.0)],
+                None,
+                [0.0; 3],
+                GeneratorWants::STAGE1,
+                None,
+                false,
+            )
+            .unwrap_err();
+        assert!(
+            matches!(err, GeneratorError::Batch { z: 1, poses: 2, .. }),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn normals_go_to_camera_space() {
+        let device = Device::flex();
+        let camera = CameraConfig::new();
+        let world =
+            Tensor::<1>::from_floats([0.0, 0.0, 1.0, 1.0, 0.0, 0.0], &device).reshape([2, 1, 3]);
+        let cam = to_f32_vec(to_camera_space(
+            world,
+            &camera,
+            &[(0.0, 0.0), (std::f64::consts::FRAC_PI_2, 0.0)],
+            &device,
+        ));
+        // Frontal: world +z faces the camera. Yaw 90 degrees: the camera sits on +x.
+        for (g, w) in cam.iter().zip([0.0, 0.0, 1.0, 0.0, 0.0, 1.0]) {
+            assert!((g - w).abs() < 1e-6, "{cam:?}");
+        }
+    }
+}
