@@ -10,6 +10,7 @@ use volux_envmap::{PreconvolveOptions, io, preconvolve};
 use volux_model::backend::BackendKind;
 use volux_model::generator::{GeneratorConfig, GeneratorWants};
 use volux_model::light_lookup::LightMapBatch;
+use volux_model::presets::{self, DiscriminatorRole};
 use volux_model::sampling_report::{self, SamplingSettings};
 use volux_model::volume_rendering::Lighting;
 
@@ -35,12 +36,16 @@ pub enum Preset {
 }
 
 impl Preset {
-    fn config(self) -> GeneratorConfig {
+    fn preset(self) -> presets::Preset {
         match self {
-            Preset::Small => GeneratorConfig::small(),
-            Preset::Paper128 => GeneratorConfig::paper(128),
-            Preset::Paper256 => GeneratorConfig::paper(256),
+            Preset::Small => presets::Preset::Small,
+            Preset::Paper128 => presets::Preset::Paper128,
+            Preset::Paper256 => presets::Preset::Paper256,
         }
+    }
+
+    fn config(self) -> GeneratorConfig {
+        self.preset().generator()
     }
 }
 
@@ -96,7 +101,8 @@ fn info(args: InfoArgs) -> anyhow::Result<()> {
     let config = args.preset.config();
     let generator = config.init(&burn::tensor::Device::flex())?;
     println!(
-        "{:?}: volume {0}x{0}, output {1}x{1}, {2}+{3} samples per ray",
+        "{:?}: volume {1}x{1}, output {2}x{2}, {3}+{4} samples per ray",
+        args.preset,
         config.volume_resolution,
         config.output_resolution,
         config.renderer.stratified,
@@ -108,6 +114,19 @@ fn info(args: InfoArgs) -> anyhow::Result<()> {
         total += count;
     }
     println!("  {:<20} {total:>12}", "generator");
+    let device = burn::tensor::Device::flex();
+    for role in DiscriminatorRole::ALL {
+        let cfg = args.preset.preset().discriminator(role);
+        let d = cfg.init(&device);
+        println!(
+            "  {:<22} {:>10}   ({} channels, {}x{})",
+            role.name(),
+            d.num_params(),
+            cfg.in_channels,
+            cfg.resolution,
+            cfg.resolution
+        );
+    }
     Ok(())
 }
 

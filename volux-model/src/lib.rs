@@ -4,8 +4,8 @@
 //!   [`modulated`] layers, the [`neiif`] (density, forward-mode normals, albedo, specular
 //!   weights, features), volume rendering ([`ray_sampling`] -> [`volume_rendering`] ->
 //!   [`ray_marching`], with the [`light_lookup`] for `D` and `S`), the [`upsampler`], the
-//!   [`relighting`] U-Net, all tied together in [`generator`] with its `small` and `paper`
-//!   presets.
+//!   [`relighting`] U-Net, all tied together in [`generator`]; [`presets`] sizes the
+//!   generator and the discriminators together (`small`, `paper`).
 //! - Discriminators (section 3.4): [`equalized`] layers, StyleGAN2's [`blur`], the residual
 //!   [`discriminator`] with its explicit input gradient and the R1 penalty.
 //! - Checks: [`backend`] (device selection and a self-check), [`analytic`] fields with known
@@ -22,6 +22,7 @@ pub mod mapping;
 pub mod modulated;
 pub mod neiif;
 pub mod positional_encoding;
+pub mod presets;
 pub mod ray_marching;
 pub mod ray_sampling;
 pub mod relighting;

@@ -1,0 +1,102 @@
+//! Named model sizes: the generator and the four discriminators of section 3.4 (`D_A` at low
+//! and high resolution, `D_G`, `D_S`, `D_P`) sized together.
+
+use crate::discriminator::DiscriminatorConfig;
+use crate::generator::GeneratorConfig;
+
+/// A model size.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Preset {
+    /// 32x32 volume, 64x64 output, NeIIF width 64, small discriminators: trains on 2 CPU cores.
+    Small,
+    /// The paper's model at 128x128 (CelebA), StyleGAN2's discriminators.
+    Paper128,
+    /// The paper's model at 256x256 (FFHQ), StyleGAN2's discriminators.
+    Paper256,
+}
+
+/// Which discriminator, and what it sees.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DiscriminatorRole {
+    /// `D_A` on the low-resolution albedo `A_lo`.
+    AlbedoLow,
+    /// `D_A` on the high-resolution albedo `A_hi`.
+    AlbedoHigh,
+    /// `D_G` on normal maps.
+    Geometry,
+    /// `D_S` on `[I_relit, D, S]` (9 channels).
+    Shading,
+    /// `D_P` on `I_relit` against the photos.
+    Photo,
+}
+
+impl DiscriminatorRole {
+    pub const ALL: [Self; 5] = [
+        Self::AlbedoLow,
+        Self::AlbedoHigh,
+        Self::Geometry,
+        Self::Shading,
+        Self::Photo,
+    ];
+
+    /// The paper's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::AlbedoLow => "D_A (low-res albedo)",
+            Self::AlbedoHigh => "D_A (high-res albedo)",
+            Self::Geometry => "D_G (normals)",
+            Self::Shading => "D_S (relit, D, S)",
+            Self::Photo => "D_P (relit vs photo)",
+        }
+    }
+}
+
+impl Preset {
+    /// The generator's sizes.
+    pub fn generator(self) -> GeneratorConfig {
+        match self {
+            Self::Small => GeneratorConfig::small(),
+            Self::Paper128 => GeneratorConfig::paper(128),
+            Self::Paper256 => GeneratorConfig::paper(256),
+        }
+    }
+
+    /// The sizes of one discriminator.
+    pub fn discriminator(self, role: DiscriminatorRole) -> DiscriminatorConfig {
+        let g = self.generator();
+        let (channels, resolution) = match role {
+            DiscriminatorRole::AlbedoLow => (3, g.volume_resolution),
+            DiscriminatorRole::AlbedoHigh => (3, g.output_resolution),
+            DiscriminatorRole::Geometry => (3, g.volume_resolution),
+            DiscriminatorRole::Shading => (9, g.output_resolution),
+            DiscriminatorRole::Photo => (3, g.output_resolution),
+        };
+        match self {
+            Self::Small => DiscriminatorConfig::small(channels, resolution),
+            Self::Paper128 | Self::Paper256 => DiscriminatorConfig::stylegan2(channels, resolution),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::{Device, Distribution, Tensor};
+
+    #[test]
+    fn every_small_discriminator_takes_what_the_generator_makes() {
+        let device = Device::flex();
+        let g = Preset::Small.generator();
+        for role in DiscriminatorRole::ALL {
+            let cfg = Preset::Small.discriminator(role);
+            let d = cfg.init(&device);
+            let x = Tensor::<4>::random(
+                [2, cfg.in_channels, cfg.resolution, cfg.resolution],
+                Distribution::Normal(0.0, 1.0),
+                &device,
+            );
+            assert_eq!(d.forward(x).dims(), [2, 1], "{}", role.name());
+            assert!([g.volume_resolution, g.output_resolution].contains(&cfg.resolution));
+        }
+    }
+}
