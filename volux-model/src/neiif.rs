@@ -34,16 +34,37 @@ pub const NORMAL_EPS2: f64 = 1e-12;
 
 /// The smooth activation `gain (0.2 x + 0.8 softplus(x))`.
 pub fn smooth_lrelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
-    (x.clone().mul_scalar(0.2) + activation::softplus(x, 1.0).mul_scalar(0.8))
-        .mul_scalar(SMOOTH_GAIN)
+    smooth_lrelu_parts(x, false).0
 }
 
 /// Its derivative `gain (0.2 + 0.8 sigmoid(x))`.
 pub fn smooth_lrelu_derivative<const D: usize>(x: Tensor<D>) -> Tensor<D> {
-    activation::sigmoid(x)
-        .mul_scalar(0.8)
-        .add_scalar(0.2)
-        .mul_scalar(SMOOTH_GAIN)
+    smooth_lrelu_parts(x, true)
+        .1
+        .expect("the derivative was asked for")
+}
+
+/// Value and (optionally) derivative from one `e = exp(-|x|)`:
+/// `softplus(x) = max(x, 0) + ln(1 + e)` and `sigmoid(x) = 1 / (1 + e)` for `x >= 0`,
+/// `e / (1 + e)` otherwise; both stable for any `x`. About 3x faster on flex than Burn's
+/// `softplus` + `sigmoid` (whose `log1p` is slow), which matters: the NeIIF applies this
+/// to every hidden unit of every sample, and its derivative to every tangent.
+pub fn smooth_lrelu_parts<const D: usize>(
+    x: Tensor<D>,
+    derivative: bool,
+) -> (Tensor<D>, Option<Tensor<D>>) {
+    let e = x.clone().abs().neg().exp();
+    let one_plus = e.clone().add_scalar(1.0);
+    let softplus = x.clone().clamp_min(0.0) + one_plus.clone().log();
+    let derivative = derivative.then(|| {
+        let negative = x.clone().lower_elem(0.0);
+        let sigmoid = e.mask_fill(negative.bool_not(), 1.0) / one_plus;
+        sigmoid
+            .mul_scalar(0.8 * SMOOTH_GAIN)
+            .add_scalar(0.2 * SMOOTH_GAIN)
+    });
+    let value = (x.mul_scalar(0.2) + softplus.mul_scalar(0.8)).mul_scalar(SMOOTH_GAIN);
+    (value, derivative)
 }
 
 /// Configuration of a [`Neiif`].
@@ -232,14 +253,15 @@ impl Neiif {
                     let both = layer.linear(Tensor::cat(vec![h, t], 1), &m);
                     let o = layer.d_output();
                     let z = layer.add_bias(both.clone().narrow(1, 0, p));
-                    let dz = smooth_lrelu_derivative(z.clone()).reshape([b, 1, p, o]);
+                    let (value, dz) = smooth_lrelu_parts(z, true);
+                    let dz = dz.expect("asked").reshape([b, 1, p, o]);
                     let t = both.narrow(1, p, 3 * p).reshape([b, 3, p, o]) * dz;
                     tangents = Some(t.reshape([b, 3 * p, o]));
-                    z
+                    value
                 }
-                None => layer.add_bias(layer.linear(h, &m)),
+                None => smooth_lrelu(layer.add_bias(layer.linear(h, &m))),
             };
-            h = smooth_lrelu(z);
+            h = z;
             if i + 1 == self.density_layer {
                 let raw = per_point(&self.density_head, h.clone()); // [b, p, 1]
                 out.sigma = activation::softplus(raw.clone(), 1.0).reshape([b, p]);
@@ -347,6 +369,26 @@ mod tests {
             assert!((len - 1.0).abs() < 1e-4, "normal {i} has length^2 {len}");
             let dot: f32 = (0..3).map(|k| normals[3 * i + k] * grad[3 * i + k]).sum();
             assert!(dot < 0.0, "normals point against the density gradient");
+        }
+    }
+
+    #[test]
+    fn activation_matches_softplus_and_sigmoid_in_f64() {
+        let device = Device::flex();
+        let xs: Vec<f32> = (-400..=400).map(|i| i as f32 * 0.1).collect();
+        let x = Tensor::<1>::from_floats(xs.as_slice(), &device);
+        let (v, d) = smooth_lrelu_parts(x, true);
+        let (v, d) = (to_f32_vec(v), to_f32_vec(d.unwrap()));
+        for (i, x) in xs.iter().map(|x| f64::from(*x)).enumerate() {
+            let softplus = x.max(0.0) + (-x.abs()).exp().ln_1p();
+            let sigmoid = 1.0 / (1.0 + (-x).exp());
+            let want_v = SMOOTH_GAIN * (0.2 * x + 0.8 * softplus);
+            let want_d = SMOOTH_GAIN * (0.2 + 0.8 * sigmoid);
+            assert!(
+                (f64::from(v[i]) - want_v).abs() < 1e-5 * (1.0 + want_v.abs()),
+                "x={x}"
+            );
+            assert!((f64::from(d[i]) - want_d).abs() < 1e-6, "x={x}");
         }
     }
 

@@ -623,3 +623,52 @@ mod tests {
         ));
     }
 }
+
+#[cfg(test)]
+mod merge_tests {
+    use super::*;
+    use crate::analytic::SoftSphere;
+    use crate::backend::to_f32_vec;
+    use crate::ray_sampling::camera_ray_batch;
+    use burn::tensor::Device;
+
+    #[test]
+    fn merged_samples_carry_the_values_of_their_own_depths() {
+        let device = Device::flex();
+        let sphere = SoftSphere {
+            radius: 0.3,
+            softness: 0.01,
+            peak: 60.0,
+            albedo: [0.5; 3],
+            specular_weights: vec![0.1],
+        };
+        let cfg = CameraConfig::new();
+        let (o, d) = camera_ray_batch(&cfg, &[(0.1, 0.05)], 6, 6, &device);
+        let (t, _) = stratified_samples(&cfg, 36, 8, true, &device);
+        let wants = FieldWants::ALL;
+        let coarse = evaluate(&sphere, &o, &d, t, wants);
+        let w = ray_marching::weights(
+            coarse.sigma.clone(),
+            segment_lengths(coarse.t.clone(), cfg.far),
+        );
+        let t_fine = importance_samples(&cfg, coarse.t.clone(), w, 8, true);
+        let fine = evaluate(&sphere, &o, &d, t_fine, wants);
+        let merged = merge(coarse, fine);
+        let again = evaluate(&sphere, &o, &d, merged.t.clone(), wants);
+        let t = to_f32_vec(merged.t.clone());
+        for row in t.chunks(16) {
+            assert!(row.windows(2).all(|p| p[0] <= p[1]), "sorted: {row:?}");
+        }
+        for (a, b) in [(merged.sigma.clone(), again.sigma)] {
+            let diff: f32 = (a - b).abs().max().into_scalar();
+            assert!(diff < 1e-4, "sigma differs by {diff}");
+        }
+        for (a, b) in [
+            (merged.normals.unwrap(), again.normals.unwrap()),
+            (merged.features.unwrap(), again.features.unwrap()),
+        ] {
+            let diff: f32 = (a - b).abs().max().into_scalar();
+            assert!(diff < 1e-4, "per-sample values differ by {diff}");
+        }
+    }
+}
