@@ -138,3 +138,53 @@ fn backend_check_runs_on_the_cpu() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(text(&o).contains("cpu: ok"), "{}", text(&o));
 }
+
+#[test]
+fn model_info_counts_the_parameters_of_every_network() {
+    let o = volux(&["model", "info", "--preset", "small"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let t = text(&o);
+    for part in [
+        "mapping network",
+        "NeIIF",
+        "upsampler",
+        "relighting network",
+        "generator",
+        "D_A (low-res albedo)",
+        "D_S (relit, D, S)",
+        "D_P (relit vs photo)",
+    ] {
+        assert!(t.contains(part), "{part} missing from:\n{t}");
+    }
+    assert!(t.contains("261245"), "small generator size changed:\n{t}");
+}
+
+#[test]
+fn model_sampling_report_prints_a_table_and_rejects_a_missing_hdri() {
+    let o = volux(&[
+        "model",
+        "sampling-report",
+        "--side",
+        "4",
+        "--counts",
+        "4",
+        "--reference",
+        "32",
+        "--hdri",
+        &asset("sunrise.exr"),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let t = text(&o);
+    assert!(
+        t.contains("| scene | stratified | importance | ms |"),
+        "{t}"
+    );
+    assert_eq!(
+        t.lines().filter(|l| l.starts_with("| ")).count(),
+        1 + 2 * 4,
+        "{t}"
+    );
+    let o = volux(&["model", "sampling-report", "--hdri", "no/such/map.exr"]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("no/such/map.exr"), "{}", text(&o));
+}

@@ -659,10 +659,11 @@ mod merge_tests {
         for row in t.chunks(16) {
             assert!(row.windows(2).all(|p| p[0] <= p[1]), "sorted: {row:?}");
         }
-        for (a, b) in [(merged.sigma.clone(), again.sigma)] {
-            let diff: f32 = (a - b).abs().max().into_scalar();
-            assert!(diff < 1e-4, "sigma differs by {diff}");
-        }
+        let diff: f32 = (merged.sigma.clone() - again.sigma)
+            .abs()
+            .max()
+            .into_scalar();
+        assert!(diff < 1e-4, "sigma differs by {diff}");
         for (a, b) in [
             (merged.normals.unwrap(), again.normals.unwrap()),
             (merged.features.unwrap(), again.features.unwrap()),
