@@ -176,12 +176,12 @@ fn model_sampling_report_prints_a_table_and_rejects_a_missing_hdri() {
     assert!(o.status.success(), "{}", text(&o));
     let t = text(&o);
     assert!(
-        t.contains("| scene | stratified | importance | ms |"),
+        t.contains("| scene | stratified | importance | rule | ms |"),
         "{t}"
     );
     assert_eq!(
         t.lines().filter(|l| l.starts_with("| ")).count(),
-        1 + 2 * 4,
+        1 + 3 * 4,
         "{t}"
     );
     let o = volux(&["model", "sampling-report", "--hdri", "no/such/map.exr"]);

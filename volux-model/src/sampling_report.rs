@@ -1,5 +1,6 @@
-//! Error against run time of the renderer's samples per ray: for each sample count (with and
-//! without as many importance samples again), the relative RMS error of the accumulated albedo,
+//! Error against run time of the renderer's samples per ray: for each sample count (stratified
+//! only, and with as many importance samples again under the left and the midpoint rule), the
+//! relative RMS error of the accumulated albedo,
 //! normals, diffuse and specular maps against a 1024-sample stratified reference, and the wall
 //! time of the render, on random NeIIFs (fog-like, as a generator is at initialisation) and on
 //! soft spheres (hard surfaces, the stiff case). `volux model sampling-report` prints it;
@@ -50,6 +51,8 @@ pub struct SamplingRow {
     pub scene: String,
     pub stratified: usize,
     pub importance: usize,
+    /// Midpoint rule (else the left rule).
+    pub midpoint: bool,
     /// Wall time of one render of the image (forward only), milliseconds.
     pub ms: f64,
     /// Relative RMS error of `[A, N, D, S]` against the reference.
@@ -130,10 +133,11 @@ fn measure_scene(
         device,
     );
     for &count in &settings.counts {
-        for importance in [0, count] {
+        for (importance, midpoint) in [(0, true), (count, false), (count, true)] {
             let cfg = RendererConfig::new()
                 .with_stratified(count)
-                .with_importance(importance);
+                .with_importance(importance)
+                .with_midpoint(midpoint);
             let start = Instant::now();
             let got = render_chunked(&cfg, field, settings.side, lighting, settings.chunk, device);
             let ms = start.elapsed().as_secs_f64() * 1e3;
@@ -142,6 +146,7 @@ fn measure_scene(
                 scene: scene.to_string(),
                 stratified: count,
                 importance,
+                midpoint,
                 ms,
                 error,
             });
@@ -185,14 +190,15 @@ pub fn run(settings: &SamplingSettings, lighting: &Lighting, device: &Device) ->
 /// The report as a Markdown table.
 pub fn to_markdown(rows: &[SamplingRow]) -> String {
     let mut s = String::from(
-        "| scene | stratified | importance | ms | A rel RMS | N rel RMS | D rel RMS | S rel RMS |\n|---|---|---|---|---|---|---|---|\n",
+        "| scene | stratified | importance | rule | ms | A rel RMS | N rel RMS | D rel RMS | S rel RMS |\n|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
         s.push_str(&format!(
-            "| {} | {} | {} | {:.0} | {:.2e} | {:.2e} | {:.2e} | {:.2e} |\n",
+            "| {} | {} | {} | {} | {:.0} | {:.2e} | {:.2e} | {:.2e} | {:.2e} |\n",
             r.scene,
             r.stratified,
             r.importance,
+            if r.midpoint { "midpoint" } else { "left" },
             r.ms,
             r.error[0],
             r.error[1],
@@ -236,16 +242,16 @@ mod tests {
             chunk: 64,
         };
         let rows = run(&settings, &lighting, &device);
-        assert_eq!(rows.len(), 3 * 4);
-        for scene in rows.chunks(4) {
-            // [4 strat, 4+4, 32 strat, 32+32]: 32 stratified beats 4 on every map that 4 gets
+        assert_eq!(rows.len(), 3 * 6);
+        for scene in rows.chunks(6) {
+            // [4, 4+4 left, 4+4 mid, 32, ...]: 32 stratified beats 4 on every map that 4 gets
             // wrong (a hard sphere's constant albedo is exact, to rounding, with any count).
             for k in (0..4).filter(|&k| scene[0].error[k] > 1e-5) {
                 assert!(
-                    scene[2].error[k] < scene[0].error[k],
+                    scene[3].error[k] < scene[0].error[k],
                     "{}: map {k}: {:?} vs {:?}",
                     scene[0].scene,
-                    scene[2].error,
+                    scene[3].error,
                     scene[0].error
                 );
             }
