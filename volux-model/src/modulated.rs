@@ -5,10 +5,10 @@
 //!
 //! The NeIIF's layers are these, applied per 3D point; the upsampler's "1x1 modulated
 //! convolutions" are the same layer applied per pixel (a 1x1 convolution is a fully connected
-//! layer over channels), so one implementation serves both. Modulation is applied to the input
-//! instead of building per-sample weights (StyleGAN2's "fused" form, without grouped
-//! convolutions): `y = ((x * s) W^T) * d + b`, with the demodulation `d = rsqrt(s^2 (W^2)^T)`
-//! computed once per sample.
+//! layer over channels), so one implementation serves both. Each sample's modulated,
+//! demodulated weight is built once (`W_b = diag(s_b) W^T diag(d_b)`, with the demodulation
+//! `d = rsqrt(s^2 (W^2)^T)`) and applied by a batched matmul, StyleGAN2's grouped convolution
+//! without the grouping.
 
 use burn::config::Config;
 use burn::module::{Module, Param};
@@ -46,14 +46,16 @@ pub struct ModulatedLinear {
     pub demodulate: bool,
 }
 
-/// The per-sample factors of one layer for one batch: input scales `s` and output scales `d`
-/// (ones when the layer does not demodulate).
+/// The per-sample factors of one layer for one batch: input scales `s`, output scales `d`
+/// (`None` when the layer does not demodulate), and the weight they fold into.
 #[derive(Clone, Debug)]
 pub struct Modulation {
     /// `[batch, d_input]`.
     pub styles: Tensor<2>,
     /// `[batch, d_output]`, or `None` without demodulation.
     pub demod: Option<Tensor<2>>,
+    /// `diag(s_b) W^T diag(d_b)`, `[batch, d_input, d_output]`.
+    pub weight: Tensor<3>,
 }
 
 impl ModulatedLinearConfig {
@@ -86,36 +88,38 @@ impl ModulatedLinear {
         self.weight.val().mul_scalar(self.weight_gain)
     }
 
-    /// Styles and demodulation factors for `w: [batch, w_dim]`.
+    /// Styles, demodulation factors and the folded per-sample weight for `w: [batch, w_dim]`.
     pub fn modulation(&self, w: Tensor<2>) -> Modulation {
         let styles = self.affine.forward(w);
+        let [b, i] = styles.dims();
+        let o = self.d_output();
+        let transposed = self.effective_weight().transpose(); // [in, out]
         let demod = self.demodulate.then(|| {
-            let w2 = self.effective_weight().powi_scalar(2).transpose(); // [in, out]
             styles
                 .clone()
                 .powi_scalar(2)
-                .matmul(w2)
+                .matmul(transposed.clone().powi_scalar(2))
                 .add_scalar(DEMOD_EPS)
                 .sqrt()
                 .recip()
         });
-        Modulation { styles, demod }
+        let weight = transposed.reshape([1, i, o]) * styles.clone().reshape([b, i, 1]);
+        let weight = match &demod {
+            Some(d) => weight * d.clone().reshape([b, 1, o]),
+            None => weight,
+        };
+        Modulation {
+            styles,
+            demod,
+            weight,
+        }
     }
 
-    /// The linear part, without bias: `[batch, points, d_input] -> [batch, points, d_output]`.
-    /// Tangents (derivatives of the input) go through this alone.
+    /// The linear part, without bias: `[batch, points, d_input] -> [batch, points, d_output]`,
+    /// one batched matmul with the folded weight. Tangents (derivatives of the input) go
+    /// through this alone.
     pub fn linear(&self, x: Tensor<3>, m: &Modulation) -> Tensor<3> {
-        let [b, p, i] = x.dims();
-        let o = self.d_output();
-        let xs = x * m.styles.clone().reshape([b, 1, i]);
-        let y = xs
-            .reshape([b * p, i])
-            .matmul(self.effective_weight().transpose())
-            .reshape([b, p, o]);
-        match &m.demod {
-            Some(d) => y * d.clone().reshape([b, 1, o]),
-            None => y,
-        }
+        x.matmul(m.weight.clone())
     }
 
     /// Adds the bias to the output of [`Self::linear`].

@@ -249,13 +249,12 @@ impl Neiif {
             let m = layer.modulation(w.clone());
             let z = match tangents.take() {
                 Some(t) => {
-                    // Values and tangents through one matmul; the bias goes to values only.
-                    let both = layer.linear(Tensor::cat(vec![h, t], 1), &m);
+                    // Tangents go through the same weight, without the bias.
                     let o = layer.d_output();
-                    let z = layer.add_bias(both.clone().narrow(1, 0, p));
+                    let z = layer.add_bias(layer.linear(h, &m));
                     let (value, dz) = smooth_lrelu_parts(z, true);
                     let dz = dz.expect("asked").reshape([b, 1, p, o]);
-                    let t = both.narrow(1, p, 3 * p).reshape([b, 3, p, o]) * dz;
+                    let t = layer.linear(t, &m).reshape([b, 3, p, o]) * dz;
                     tangents = Some(t.reshape([b, 3 * p, o]));
                     value
                 }
