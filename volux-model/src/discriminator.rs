@@ -678,6 +678,46 @@ mod tests {
         );
     }
 
+    /// The GPU path (CI runs it on a software Vulkan driver): logits, the explicit input
+    /// gradient and the R1 weight gradient equal the CPU's for the same weights.
+    #[cfg(feature = "wgpu")]
+    #[test]
+    fn wgpu_agrees_with_flex_including_r1() {
+        let gpu = crate::backend::BackendKind::Wgpu.device().unwrap();
+        let mut rng = SplitMix64::new(11);
+        let x = normals(&mut rng, 4 * 3 * 16 * 16);
+        let mut results = Vec::new();
+        for device in [Device::flex().autodiff(), gpu.autodiff()] {
+            let d = tiny(&device, 5, DType::F32);
+            let input = tensor(x.clone(), [4, 3, 16, 16], &device, DType::F32);
+            let (logits, grad) = d.input_gradient(input.clone().detach());
+            let (_, penalty) = r1_penalty(&d, input, 10.0);
+            let grads = penalty.backward();
+            let w = d
+                .from_rgb
+                .weight
+                .val()
+                .grad(&grads)
+                .expect("R1 reaches FromRGB");
+            results.push([to_f64_vec(logits), to_f64_vec(grad), to_f64_vec(w)]);
+        }
+        let (cpu, gpu) = (&results[0], &results[1]);
+        for (k, what) in ["logits", "input gradient", "R1 gradient of FromRGB"]
+            .iter()
+            .enumerate()
+        {
+            let scale = cpu[k].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let worst = cpu[k]
+                .iter()
+                .zip(&gpu[k])
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                worst <= 1e-3 * scale.max(1e-6),
+                "{what}: {worst} (scale {scale})"
+            );
+        }
+    }
+
     #[test]
     fn presets_give_one_logit_per_image() {
         let device = Device::flex();

@@ -15,8 +15,8 @@
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{PixelShuffle, PixelShuffleConfig};
-use burn::tensor::module::{conv2d, interpolate};
-use burn::tensor::ops::{ConvOptions, InterpolateMode, InterpolateOptions};
+use burn::tensor::module::{conv_transpose2d, conv2d};
+use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
 use burn::tensor::{Device, Tensor};
 
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
@@ -89,18 +89,7 @@ fn conv1x1(layer: &ModulatedLinear, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
 pub fn blur_stride1(x: Tensor<4>) -> Tensor<4> {
     let [b, c, h, w] = x.dims();
     let device = x.device();
-    let pad_rows = Tensor::cat(
-        vec![x.clone().narrow(2, 0, 1), x.clone(), x.narrow(2, h - 1, 1)],
-        2,
-    );
-    let padded = Tensor::cat(
-        vec![
-            pad_rows.clone().narrow(3, 0, 1),
-            pad_rows.clone(),
-            pad_rows.narrow(3, w - 1, 1),
-        ],
-        3,
-    );
+    let padded = pad_replicate(x);
     let k = [1.0f32, 2.0, 1.0];
     let kernel: Vec<f32> = (0..c)
         .flat_map(|_| (0..9).map(|i| k[i / 3] * k[i % 3] / 16.0))
@@ -116,19 +105,61 @@ pub fn blur_stride1(x: Tensor<4>) -> Tensor<4> {
     out
 }
 
-/// Bilinear x`factor` upsampling with half-pixel centres (PyTorch's `align_corners = False`),
-/// used for the shading maps and the albedo skip path.
+/// Replicates the outermost rows and columns once: `[b, c, h, w] -> [b, c, h + 2, w + 2]`.
+fn pad_replicate(x: Tensor<4>) -> Tensor<4> {
+    let [_, _, h, w] = x.dims();
+    let rows = Tensor::cat(
+        vec![x.clone().narrow(2, 0, 1), x.clone(), x.narrow(2, h - 1, 1)],
+        2,
+    );
+    Tensor::cat(
+        vec![
+            rows.clone().narrow(3, 0, 1),
+            rows.clone(),
+            rows.narrow(3, w - 1, 1),
+        ],
+        3,
+    )
+}
+
+/// Bilinear x`factor` upsampling with half-pixel centres and clamped edges (PyTorch's
+/// `align_corners = False`), used for the shading maps and the albedo skip path.
+///
+/// Written as a depthwise transposed convolution with the tent kernel
+/// `k_j = 1 - |j - f + 1/2| / f` (`j < 2f`) on the edge-replicated input, then a crop,
+/// because Burn's `interpolate` has no bilinear backward on the wgpu backend. `factor` must be
+/// 1 or even. Equal to `interpolate` on flex (tested).
 pub fn bilinear_upsample(x: Tensor<4>, factor: usize) -> Tensor<4> {
     if factor == 1 {
         return x;
     }
-    let [_, _, h, w] = x.dims();
-    interpolate(
-        x,
-        InterpolateOptions::new(InterpolateMode::Bilinear)
-            .with_align_corners(false)
-            .with_output_size([h * factor, w * factor]),
-    )
+    assert!(
+        factor % 2 == 0,
+        "bilinear upsampling by an even factor, got {factor}"
+    );
+    let [b, c, h, w] = x.dims();
+    let f = factor;
+    let taps: Vec<f32> = (0..2 * f)
+        .map(|j| 1.0 - (j as f32 - f as f32 + 0.5).abs() / f as f32)
+        .collect();
+    let kernel: Vec<f32> = (0..c)
+        .flat_map(|_| {
+            let taps = &taps;
+            (0..4 * f * f).map(move |i| taps[i / (2 * f)] * taps[i % (2 * f)])
+        })
+        .collect();
+    let kernel =
+        Tensor::<1>::from_floats(kernel.as_slice(), &x.device()).reshape([c, 1, 2 * f, 2 * f]);
+    let full = conv_transpose2d(
+        pad_replicate(x),
+        kernel,
+        None,
+        ConvTransposeOptions::new([f, f], [0, 0], [0, 0], [1, 1], c),
+    );
+    let crop = 3 * f / 2;
+    let out = full.narrow(2, crop, h * f).narrow(3, crop, w * f);
+    debug_assert_eq!(out.dims(), [b, c, h * f, w * f]);
+    out
 }
 
 impl Upsampler {
@@ -207,6 +238,24 @@ mod tests {
         let want = [0.0, 0.25, 0.75, 1.0];
         for (g, w) in y[..4].iter().zip(want) {
             assert!((g - w).abs() < 1e-6, "{y:?}");
+        }
+    }
+
+    #[test]
+    fn bilinear_upsampling_equals_burns_interpolate() {
+        use burn::tensor::module::interpolate;
+        use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+        let device = Device::flex();
+        for (f, h, w) in [(2, 5, 7), (4, 3, 6), (8, 2, 2)] {
+            let x = Tensor::<4>::random([2, 3, h, w], Distribution::Normal(0.0, 1.0), &device);
+            let want = interpolate(
+                x.clone(),
+                InterpolateOptions::new(InterpolateMode::Bilinear)
+                    .with_align_corners(false)
+                    .with_output_size([h * f, w * f]),
+            );
+            let diff: f32 = (bilinear_upsample(x, f) - want).abs().max().into_scalar();
+            assert!(diff < 1e-5, "factor {f}: {diff}");
         }
     }
 
