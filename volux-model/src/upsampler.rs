@@ -134,7 +134,7 @@ pub fn bilinear_upsample(x: Tensor<4>, factor: usize) -> Tensor<4> {
         return x;
     }
     assert!(
-        factor % 2 == 0,
+        factor.is_multiple_of(2),
         "bilinear upsampling by an even factor, got {factor}"
     );
     let [b, c, h, w] = x.dims();
