@@ -4,7 +4,7 @@
 use burn::tensor::{Tensor, activation};
 use volux_envmap::LightMap;
 
-use crate::neiif::{FieldOutput, FieldWants, NORMAL_EPS2};
+use crate::neiif::{FieldOutput, FieldWants, normals_from_gradient};
 use crate::ray_sampling::CameraConfig;
 use crate::volume_rendering::Field;
 
@@ -122,13 +122,7 @@ impl Field for SoftSphere {
             // d sigma / dx = -peak s (1 - s) / softness * x / |x|.
             let slope = s.clone() * s.neg().add_scalar(1.0);
             let g = outward * slope.mul_scalar(-self.peak / self.softness);
-            let norm = g
-                .clone()
-                .powi_scalar(2)
-                .sum_dim(2)
-                .add_scalar(NORMAL_EPS2)
-                .sqrt();
-            out.normals = Some(g.clone().neg() / norm);
+            out.normals = Some(normals_from_gradient(g.clone()));
             out.grad_sigma = Some(g);
         }
         if wants.appearance {

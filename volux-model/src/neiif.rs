@@ -32,6 +32,17 @@ pub const SMOOTH_GAIN: f64 = 1.125;
 /// (almost) nothing: `n = -g / sqrt(|g|^2 + NORMAL_EPS2)`.
 pub const NORMAL_EPS2: f64 = 1e-12;
 
+/// Normals from density gradients `[.., .., 3]`: `-g / sqrt(|g|^2 + NORMAL_EPS2)`.
+pub fn normals_from_gradient(g: Tensor<3>) -> Tensor<3> {
+    let norm = g
+        .clone()
+        .powi_scalar(2)
+        .sum_dim(2)
+        .add_scalar(NORMAL_EPS2)
+        .sqrt();
+    g.neg() / norm
+}
+
 /// The smooth activation `gain (0.2 x + 0.8 softplus(x))`.
 pub fn smooth_lrelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
     smooth_lrelu_parts(x, false).0
@@ -269,13 +280,7 @@ impl Neiif {
                     let g = per_point_linear(&self.density_head, t).reshape([b, 3, p]);
                     let g = g * activation::sigmoid(raw).reshape([b, 1, p]);
                     let g = g.swap_dims(1, 2); // [b, p, 3]
-                    let norm = g
-                        .clone()
-                        .powi_scalar(2)
-                        .sum_dim(2)
-                        .add_scalar(NORMAL_EPS2)
-                        .sqrt();
-                    out.normals = Some(g.clone().neg() / norm);
+                    out.normals = Some(normals_from_gradient(g.clone()));
                     out.grad_sigma = Some(g);
                 }
                 if !wants.appearance {
