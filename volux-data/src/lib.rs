@@ -1,5 +1,12 @@
-//! Training data for VoLux-GAN: built-in synthetic relightable heads, folder datasets, HDRI
-//! collections and relighting augmentation (pseudo ground truth), batched into Burn tensors.
+//! Training data for VoLux-GAN (paper appendix A): built-in synthetic relightable heads, folder
+//! datasets, HDRI collections and relighting augmentation (pseudo ground truth), batched into
+//! Burn tensors.
 //!
-//! Not implemented yet: this crate is an empty library so that the workspace has its final
-//! shape and dependency direction (`volux-envmap <- volux-data <- volux-train`).
+//! Today: the relighting augmentation ([`relighting`]): diffuse, specular and relit layers of
+//! an image's albedo, normals and mask under light maps at a yaw rotation. The synthetic heads,
+//! folder datasets, HDRI collections, cache and batching follow.
+//!
+//! The dataset camera is the model's (`volux_model::ray_sampling`), so that pseudo ground
+//! truth and generated images share one set of conventions.
+
+pub mod relighting;

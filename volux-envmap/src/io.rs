@@ -277,17 +277,22 @@ pub fn auto_exposure(texels: &[Rgb]) -> f32 {
     }
 }
 
-/// Tone-maps linear HDR texels to 8-bit sRGB: scale by `exposure`, then Reinhard's
-/// `L / (1 + L)` on luminance (hue kept), then the sRGB curve. Always finite.
+/// Tone-maps one linear HDR colour to sRGB in [0, 1]: scale by `exposure`, then Reinhard's
+/// `L / (1 + L)` on luminance (hue kept), then the sRGB curve. Always finite. The relit images
+/// of the datasets and of the generator (`volux_model::relighting::tonemap_srgb`) use this
+/// curve at exposure 1.
+pub fn tonemap_pixel(c: Rgb, exposure: f32) -> Rgb {
+    let scaled = c.map(|v| v.max(0.0) * exposure);
+    let lum = luminance(scaled) as f32;
+    let k = 1.0 / (1.0 + lum);
+    scaled.map(|v| linear_to_srgb(v * k))
+}
+
+/// [`tonemap_pixel`] to 8-bit sRGB.
 pub fn tonemap(texels: &[Rgb], exposure: f32) -> Vec<[u8; 3]> {
     texels
         .iter()
-        .map(|c| {
-            let scaled = c.map(|v| v.max(0.0) * exposure);
-            let lum = luminance(scaled) as f32;
-            let k = 1.0 / (1.0 + lum);
-            scaled.map(|v| (linear_to_srgb(v * k) * 255.0 + 0.5) as u8)
-        })
+        .map(|c| tonemap_pixel(*c, exposure).map(|v| (v * 255.0 + 0.5) as u8))
         .collect()
 }
 
