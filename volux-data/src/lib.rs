@@ -3,10 +3,13 @@
 //! Burn tensors.
 //!
 //! Today: the relighting augmentation ([`relighting`]): diffuse, specular and relit layers of
-//! an image's albedo, normals and mask under light maps at a yaw rotation. The synthetic heads,
-//! folder datasets, HDRI collections, cache and batching follow.
+//! an image's albedo, normals and mask under light maps at a yaw rotation; procedural
+//! environments for the built-in HDRI collection ([`procedural_sky`]: sun and sky, overcast,
+//! studio area lights). The synthetic heads, folder datasets, HDRI collections, cache and
+//! batching follow.
 //!
 //! The dataset camera is the model's (`volux_model::ray_sampling`), so that pseudo ground
 //! truth and generated images share one set of conventions.
 
+pub mod procedural_sky;
 pub mod relighting;
