@@ -44,11 +44,6 @@ pub fn sun_direction(elevation: f64, azimuth: f64) -> Dir {
     ]
 }
 
-fn normalized(d: Dir) -> Dir {
-    let l = direction::dot(d, d).sqrt();
-    d.map(|c| c / l)
-}
-
 /// Fills a `2h x h` map from a radiance function of direction, averaging `s x s`
 /// sub-samples per texel so that discs smaller than a texel keep their energy.
 fn render(height: usize, samples: usize, radiance: impl Fn(Dir) -> [f64; 3]) -> Vec<Rgb> {
@@ -167,7 +162,7 @@ pub fn studio(height: usize, lights: &[AreaLight]) -> Result<EnvMap, EnvMapError
     for l in lights {
         let disc = disc_texels(
             height,
-            normalized(l.direction),
+            direction::normalize(l.direction),
             l.radius,
             l.irradiance.map(f64::from),
         );
@@ -279,7 +274,7 @@ mod tests {
         ];
         let map = studio(64, &lights).unwrap();
         for l in &lights {
-            let n = normalized(l.direction);
+            let n = direction::normalize(l.direction);
             let e = irradiance(&map, n);
             for (got, want) in e.iter().zip(l.irradiance.map(f64::from)) {
                 // Facing one light; the other is more than 90 degrees away.

@@ -65,6 +65,12 @@ pub fn reflect(d: Dir, n: Dir) -> Dir {
     ]
 }
 
+/// `d / |d|` (`d` must not be zero).
+pub fn normalize(d: Dir) -> Dir {
+    let len = dot(d, d).sqrt();
+    d.map(|c| c / len)
+}
+
 /// Dot product.
 pub fn dot(a: Dir, b: Dir) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
@@ -73,6 +79,13 @@ pub fn dot(a: Dir, b: Dir) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn normalize_gives_unit_length_and_keeps_the_direction() {
+        let n = normalize([3.0, -4.0, 12.0]);
+        assert!((dot(n, n) - 1.0).abs() < 1e-15);
+        assert!((n[0] - 3.0 / 13.0).abs() < 1e-15 && (n[2] - 12.0 / 13.0).abs() < 1e-15);
+    }
 
     fn close(a: Dir, b: Dir, tol: f64) -> bool {
         (0..3).all(|i| (a[i] - b[i]).abs() <= tol)

@@ -96,22 +96,14 @@ impl LightMapBatch {
     /// environment rotated by `yaw[b]` radians about +y (`None`: no rotation). Returns
     /// `[batch, points, 3]`, differentiable with respect to `dirs` (and `yaw`).
     pub fn lookup(&self, dirs: Tensor<3>, yaw: Option<Tensor<1>>) -> Tensor<3> {
-        let [b, n, _] = dirs.dims();
-        let x = dirs.clone().narrow(2, 0, 1);
-        let y = dirs.clone().narrow(2, 1, 1);
-        let z = dirs.narrow(2, 2, 1);
-        let r2 = x.clone() * x.clone() + z.clone() * z.clone();
-        // On the vertical axis the azimuth is undefined: use 0 (u = 1/2, as the CPU look-up
-        // does) through inputs whose gradient is defined.
-        let axis = r2.clone().lower_elem(POLE_EPS);
-        let phi = x.mask_fill(axis.clone(), 0.0).atan2(z.mask_fill(axis, 1.0));
-        let u = phi.add_scalar(PI).div_scalar(2.0 * PI);
-        let u = match yaw {
-            Some(yaw) => u - yaw.reshape([b, 1, 1]).div_scalar(2.0 * PI),
-            None => u,
-        };
-        let u = u.clone() - u.floor().detach(); // wrap to [0, 1)
-        let v = r2.add_scalar(POLE_EPS).sqrt().atan2(y).div_scalar(PI);
+        let (u, v) = directions_to_uv(dirs, yaw);
+        self.lookup_uv(u, v)
+    }
+
+    /// `L_n` at texture coordinates from [`directions_to_uv`] (`[batch, points, 1]` each), so
+    /// that several maps sampled in one direction share its conversion.
+    pub fn lookup_uv(&self, u: Tensor<3>, v: Tensor<3>) -> Tensor<3> {
+        let [b, n, _] = u.dims();
         let (w, h) = (self.width as f32, self.height as f32);
         let gx = (u.mul_scalar(w).add_scalar(0.5))
             .mul_scalar(2.0 / (w + 1.0))
@@ -126,6 +118,29 @@ impl LightMapBatch {
         let sampled = self.padded.clone().grid_sample_2d(grid, options); // [b, 3, n, 1]
         sampled.reshape([b, 3, n]).swap_dims(1, 2)
     }
+}
+
+/// Texture coordinates `(u, v)`, `[batch, points, 1]` each, of directions `[batch, points, 3]`
+/// (need not be normalised) in each element's environment rotated by `yaw[b]` radians about
+/// +y: `u` wrapped to [0, 1), `v` in [0, 1]. Differentiable, also exactly at the poles.
+pub fn directions_to_uv(dirs: Tensor<3>, yaw: Option<Tensor<1>>) -> (Tensor<3>, Tensor<3>) {
+    let [b, _, _] = dirs.dims();
+    let x = dirs.clone().narrow(2, 0, 1);
+    let y = dirs.clone().narrow(2, 1, 1);
+    let z = dirs.narrow(2, 2, 1);
+    let r2 = x.clone() * x.clone() + z.clone() * z.clone();
+    // On the vertical axis the azimuth is undefined: use 0 (u = 1/2, as the CPU look-up
+    // does) through inputs whose gradient is defined.
+    let axis = r2.clone().lower_elem(POLE_EPS);
+    let phi = x.mask_fill(axis.clone(), 0.0).atan2(z.mask_fill(axis, 1.0));
+    let u = phi.add_scalar(PI).div_scalar(2.0 * PI);
+    let u = match yaw {
+        Some(yaw) => u - yaw.reshape([b, 1, 1]).div_scalar(2.0 * PI),
+        None => u,
+    };
+    let u = u.clone() - u.floor().detach(); // wrap to [0, 1)
+    let v = r2.add_scalar(POLE_EPS).sqrt().atan2(y).div_scalar(PI);
+    (u, v)
 }
 
 #[cfg(test)]

@@ -46,15 +46,10 @@ pub struct ModulatedLinear {
     pub demodulate: bool,
 }
 
-/// The per-sample factors of one layer for one batch: input scales `s`, output scales `d`
-/// (`None` when the layer does not demodulate), and the weight they fold into.
+/// One layer's weight for each sample of a batch: the styles `s` and demodulation `d` folded
+/// in, `diag(s_b) W^T diag(d_b)`, `[batch, d_input, d_output]`.
 #[derive(Clone, Debug)]
 pub struct Modulation {
-    /// `[batch, d_input]`.
-    pub styles: Tensor<2>,
-    /// `[batch, d_output]`, or `None` without demodulation.
-    pub demod: Option<Tensor<2>>,
-    /// `diag(s_b) W^T diag(d_b)`, `[batch, d_input, d_output]`.
     pub weight: Tensor<3>,
 }
 
@@ -88,31 +83,25 @@ impl ModulatedLinear {
         self.weight.val().mul_scalar(self.weight_gain)
     }
 
-    /// Styles, demodulation factors and the folded per-sample weight for `w: [batch, w_dim]`.
+    /// The folded per-sample weight for `w: [batch, w_dim]`.
     pub fn modulation(&self, w: Tensor<2>) -> Modulation {
         let styles = self.affine.forward(w);
         let [b, i] = styles.dims();
         let o = self.d_output();
         let transposed = self.effective_weight().transpose(); // [in, out]
-        let demod = self.demodulate.then(|| {
-            styles
-                .clone()
+        let weight = transposed.clone().reshape([1, i, o]) * styles.clone().reshape([b, i, 1]);
+        let weight = if self.demodulate {
+            let demod = styles
                 .powi_scalar(2)
-                .matmul(transposed.clone().powi_scalar(2))
+                .matmul(transposed.powi_scalar(2))
                 .add_scalar(DEMOD_EPS)
                 .sqrt()
-                .recip()
-        });
-        let weight = transposed.reshape([1, i, o]) * styles.clone().reshape([b, i, 1]);
-        let weight = match &demod {
-            Some(d) => weight * d.clone().reshape([b, 1, o]),
-            None => weight,
+                .recip();
+            weight * demod.reshape([b, 1, o])
+        } else {
+            weight
         };
-        Modulation {
-            styles,
-            demod,
-            weight,
-        }
+        Modulation { weight }
     }
 
     /// The linear part, without bias: `[batch, points, d_input] -> [batch, points, d_output]`,

@@ -9,6 +9,7 @@
 
 use burn::config::Config;
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
+use volux_envmap::direction::normalize;
 
 /// Camera intrinsics and ray bounds.
 #[derive(Config, Debug, PartialEq)]
@@ -37,16 +38,11 @@ pub fn camera_position(config: &CameraConfig, yaw: f64, pitch: f64) -> [f64; 3] 
     ]
 }
 
-fn normalized(v: [f64; 3]) -> [f64; 3] {
-    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    v.map(|c| c / l)
-}
-
 /// The camera's axes in world space for a pose: `[right, up, back]` (image +x, image +y, and
 /// the direction from the head towards the camera). Camera-space coordinates of a world
 /// vector are its dot products with these, so a normal facing the camera is camera-space +z.
 pub fn camera_basis(config: &CameraConfig, yaw: f64, pitch: f64) -> [[f64; 3]; 3] {
-    let back = normalized(camera_position(config, yaw, pitch));
+    let back = normalize(camera_position(config, yaw, pitch));
     let forward = back.map(|c| -c);
     let cross = |a: [f64; 3], b: [f64; 3]| {
         [
@@ -55,7 +51,7 @@ pub fn camera_basis(config: &CameraConfig, yaw: f64, pitch: f64) -> [[f64; 3]; 3
             a[0] * b[1] - a[1] * b[0],
         ]
     };
-    let right = normalized(cross(forward, [0.0, 1.0, 0.0]));
+    let right = normalize(cross(forward, [0.0, 1.0, 0.0]));
     let up = cross(right, forward);
     [right, up, back]
 }
@@ -79,7 +75,7 @@ pub fn camera_rays(
         for x in 0..width {
             let sx = (2.0 * (x as f64 + 0.5) / width as f64 - 1.0) * tan * aspect;
             let sy = (1.0 - 2.0 * (y as f64 + 0.5) / height as f64) * tan;
-            dirs.push(normalized(std::array::from_fn(|k| {
+            dirs.push(normalize(std::array::from_fn(|k| {
                 forward[k] + sx * right[k] + sy * up[k]
             })));
         }

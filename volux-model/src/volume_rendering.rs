@@ -13,7 +13,7 @@
 use burn::config::Config;
 use burn::tensor::{Int, Tensor};
 
-use crate::light_lookup::LightMapBatch;
+use crate::light_lookup::{LightMapBatch, directions_to_uv};
 use crate::neiif::{FieldOutput, FieldWants, Neiif};
 use crate::ray_marching;
 use crate::ray_sampling::{CameraConfig, importance_samples, segment_lengths, stratified_samples};
@@ -316,13 +316,13 @@ pub fn render(
         let yaw = lighting.yaw.clone();
         let d_samples = lighting.maps[0].lookup(n, yaw.clone());
         let omega = omega.reshape([b, r * s, lighting.maps.len()]);
+        // One direction for every specular map: convert it to (u, v) once.
+        let (u, v) = directions_to_uv(reflected, yaw);
         let s_samples = lighting
             .maps
             .iter()
             .enumerate()
-            .map(|(i, map)| {
-                map.lookup(reflected.clone(), yaw.clone()) * omega.clone().narrow(2, i, 1)
-            })
+            .map(|(i, map)| map.lookup_uv(u.clone(), v.clone()) * omega.clone().narrow(2, i, 1))
             .reduce(|a, b| a + b)
             .expect("at least one map");
         diffuse = Some(acc(d_samples.reshape([b * r, s, 3])));
