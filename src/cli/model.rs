@@ -78,6 +78,9 @@ pub struct SamplingArgs {
 pub struct BenchArgs {
     #[arg(long, value_enum, default_value = "small")]
     pub preset: Preset,
+    /// HDR environment map to light the generator with.
+    #[arg(long, default_value = "assets/hdri/sunrise.exr")]
+    pub hdri: PathBuf,
     /// Batch size.
     #[arg(long, default_value_t = 4)]
     pub batch: usize,
@@ -130,22 +133,27 @@ fn info(args: InfoArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Light maps of the default exponents of an HDRI, as a batch of one.
-fn lighting(path: &std::path::Path, device: &burn::tensor::Device) -> anyhow::Result<Lighting> {
-    let map = io::load(path)?;
-    let set = preconvolve(&map, &PreconvolveOptions::default())?;
-    let maps = set
-        .maps()
-        .iter()
-        .map(|m| LightMapBatch::new(&[m], device))
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(Lighting::new(maps, None)?)
+/// Light maps of the default exponents of an HDRI, the same for each of `batch` elements.
+fn lighting(
+    path: &std::path::Path,
+    batch: usize,
+    device: &burn::tensor::Device,
+) -> anyhow::Result<Lighting> {
+    let load = || -> anyhow::Result<Lighting> {
+        let set = preconvolve(&io::load(path)?, &PreconvolveOptions::default())?;
+        let maps = set
+            .maps()
+            .iter()
+            .map(|m| LightMapBatch::new(&vec![m; batch], device))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Lighting::new(maps, None)?)
+    };
+    load().with_context(|| format!("lighting from {}", path.display()))
 }
 
 fn sampling(args: SamplingArgs) -> anyhow::Result<()> {
     let device = args.backend.device()?;
-    let lighting = lighting(&args.hdri, &device)
-        .with_context(|| format!("lighting from {}", args.hdri.display()))?;
+    let lighting = lighting(&args.hdri, 1, &device)?;
     let settings = SamplingSettings {
         side: args.side,
         counts: args.counts,
@@ -178,17 +186,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     let device = args.backend.device()?.autodiff();
     let config = args.preset.config();
     let generator = config.init(&device)?;
-    let lighting = {
-        let maps = volux_envmap::preconvolve(
-            &io::load(std::path::Path::new("assets/hdri/sunrise.exr"))?,
-            &PreconvolveOptions::default(),
-        )?;
-        let refs: Vec<&volux_envmap::LightMap> = maps.maps().iter().collect();
-        let batches = (0..refs.len())
-            .map(|i| LightMapBatch::new(&vec![refs[i]; args.batch], &device))
-            .collect::<Result<Vec<_>, _>>()?;
-        Lighting::new(batches, None)?
-    };
+    let lighting = lighting(&args.hdri, args.batch, &device)?;
     let poses: Vec<(f64, f64)> = (0..args.batch)
         .map(|i| (0.3 * (i as f64 - 1.5), 0.1))
         .collect();

@@ -28,15 +28,14 @@ use std::f64::consts::{FRAC_1_SQRT_2, SQRT_2};
 
 use burn::config::Config;
 use burn::module::Module;
-use burn::tensor::{Device, Tensor, activation};
+use burn::tensor::{Device, Tensor};
 
 use crate::blur::{blur, blur_adjoint, blur_downsample2, blur_downsample2_adjoint};
 use crate::equalized::{
     EqualizedConv2d, EqualizedConv2dConfig, EqualizedLinear, EqualizedLinearConfig,
 };
+use crate::mapping::{LRELU_SLOPE, lrelu_gain as lrelu};
 
-/// Leaky ReLU slope.
-const LRELU_SLOPE: f64 = 0.2;
 /// Added to the group variance before the square root (StyleGAN2's value).
 const MBSTD_EPSILON: f64 = 1e-8;
 
@@ -169,11 +168,6 @@ struct Trace {
     epilogue_in: Tensor<4>,
     conv_pre: Tensor<4>,
     fc_pre: Tensor<2>,
-}
-
-/// Leaky ReLU with slope 0.2 and gain sqrt(2).
-fn lrelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
-    activation::leaky_relu(x, LRELU_SLOPE).mul_scalar(SQRT_2)
 }
 
 /// The derivative of [`lrelu`] at the pre-activation `pre`: `sqrt(2)` where `pre > 0`, else

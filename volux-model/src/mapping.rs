@@ -32,9 +32,12 @@ pub struct MappingNetwork {
     pub layers: Vec<EqualizedLinear>,
 }
 
+/// Negative slope of StyleGAN2's leaky ReLU.
+pub const LRELU_SLOPE: f64 = 0.2;
+
 /// StyleGAN2's leaky ReLU: slope 0.2, then a gain of sqrt(2) to keep unit variance.
-pub fn lrelu_gain(x: Tensor<2>) -> Tensor<2> {
-    activation::leaky_relu(x, 0.2).mul_scalar(std::f64::consts::SQRT_2)
+pub fn lrelu_gain<const D: usize>(x: Tensor<D>) -> Tensor<D> {
+    activation::leaky_relu(x, LRELU_SLOPE).mul_scalar(std::f64::consts::SQRT_2)
 }
 
 /// Normalises each row to unit mean square (StyleGAN's pixel norm on `z`).

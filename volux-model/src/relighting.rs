@@ -74,14 +74,8 @@ impl ConvPair {
     }
 
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        lrelu_4d(self.b.forward(lrelu_4d(self.a.forward(x))))
+        lrelu_gain(self.b.forward(lrelu_gain(self.a.forward(x))))
     }
-}
-
-fn lrelu_4d(x: Tensor<4>) -> Tensor<4> {
-    let dims = x.dims();
-    let n: usize = dims.iter().product();
-    lrelu_gain(x.reshape([1, n])).reshape(dims)
 }
 
 /// The U-Net.
