@@ -375,20 +375,10 @@ pub fn minibatch_std_input_gradient(
 mod tests {
     use super::*;
     use crate::backend::to_f32_vec;
-    use burn::module::{ModuleMapper, Param};
+    use crate::test_support::{Reseed, normals};
+    use burn::module::Param;
     use burn::tensor::{DType, Gradients, TensorData};
     use volux_envmap::report::SplitMix64;
-
-    /// A standard normal sample (Box-Muller on SplitMix64).
-    fn normal(rng: &mut SplitMix64) -> f64 {
-        let u = rng.next_f64().max(1e-300);
-        let v = rng.next_f64();
-        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-    }
-
-    fn normals(rng: &mut SplitMix64, n: usize) -> Vec<f64> {
-        (0..n).map(|_| normal(rng)).collect()
-    }
 
     fn tensor<const D: usize>(
         v: Vec<f64>,
@@ -406,32 +396,13 @@ mod tests {
             .expect("float tensor data")
     }
 
-    /// Replaces every parameter by deterministic N(0, 1) values (biases included, so that no
-    /// test relies on zero biases) in `dtype`, so that tests do not depend on the global RNG.
-    struct Reseed {
-        rng: SplitMix64,
-        dtype: DType,
-    }
-
-    impl ModuleMapper for Reseed {
-        fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
-            let t = param.val();
-            let dims = t.dims();
-            let values = normals(&mut self.rng, dims.iter().product());
-            Param::from_tensor(tensor(values, dims, &t.device(), self.dtype))
-        }
-    }
-
     /// 3 channels at 16x16: channels 4 (16x16), 8 (8x8), 16 (4x4).
     fn tiny(device: &Device, seed: u64, dtype: DType) -> Discriminator {
         DiscriminatorConfig::new(3, 16)
             .with_channel_base(64)
             .with_channel_max(16)
             .init(device)
-            .map(&mut Reseed {
-                rng: SplitMix64::new(seed),
-                dtype,
-            })
+            .map(&mut Reseed::new(seed, dtype))
     }
 
     /// Parameters of StyleGAN2's resnet discriminator, counted layer by layer.

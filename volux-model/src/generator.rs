@@ -414,12 +414,13 @@ mod tests {
     use burn::tensor::Distribution;
     use volux_envmap::LightMap;
 
-    fn lighting(batch: usize, device: &Device) -> Lighting {
+    /// Light maps with a gradient in red and, in blue, one texel of `spike` (a sun).
+    fn lighting(batch: usize, spike: f32, device: &Device) -> Lighting {
         let maps: Vec<LightMap> = [1u32, 16, 32, 64]
             .iter()
             .map(|&n| {
                 let texels = (0..16 * 8)
-                    .map(|i| [1.0 + (i % 16) as f32, 2.0, 1e5 * f32::from(i == 40)])
+                    .map(|i| [1.0 + (i % 16) as f32, 2.0, spike * f32::from(i == 40)])
                     .collect();
                 LightMap::new(n, 16, 8, texels)
             })
@@ -491,7 +492,7 @@ mod tests {
             "{counts:?}"
         );
         let z = Tensor::<2>::random([2, 128], Distribution::Normal(0.0, 1.0), &device);
-        let light = lighting(2, &device);
+        let light = lighting(2, 1e5, &device);
         let out = g
             .forward(
                 z,
@@ -567,7 +568,7 @@ mod tests {
         // 48 rays of the 64x64 image: its central row, and 16 rays more.
         let (o, d) = camera_ray_batch(&config.renderer.camera, &[(0.2, 0.0)], 64, 64, &device);
         let (o, d) = (o.narrow(1, 64 * 32, 48), d.narrow(1, 64 * 32, 48));
-        let light = lighting(1, &device);
+        let light = lighting(1, 1e5, &device);
         let r = g
             .render_rays(w.clone(), o, d, Some(&light), RenderWants::ALL, true)
             .unwrap();
@@ -677,7 +678,7 @@ mod tests {
                 .forward(
                     z,
                     &poses,
-                    Some(&lighting(2, device)),
+                    Some(&lighting(2, 0.0, device)),
                     [0.0; 3],
                     GeneratorWants::ALL,
                     None,
@@ -693,22 +694,20 @@ mod tests {
                 out.relit.unwrap(),
             ]
         };
-        // Light maps with a fixed yaw on both devices.
         let cpu = run(&g, z.clone(), &flex);
         let on_gpu = run(&g.clone().to_device(&gpu), z.to_device(&gpu), &gpu);
         for (k, (a, b)) in cpu.into_iter().zip(on_gpu).enumerate() {
             let (a, b) = (to_f32_vec(a), to_f32_vec(b));
-            // Relative to the map's largest value: the test light maps hold a 1e5 texel, so
-            // a look-up near it amplifies last-bit differences of the normals.
-            let scale = a.iter().fold(1.0f32, |m, x| m.max(x.abs()));
+            // Smooth light maps: next to a 1e5 texel, last-bit differences of the normals
+            // would be amplified into large ones (the CPU tests cover that stiff case).
             let worst = a
                 .iter()
                 .zip(&b)
-                .map(|(x, y)| (x - y).abs() / scale)
+                .map(|(x, y)| (x - y).abs() / (1.0 + x.abs()))
                 .fold(0.0f32, f32::max);
             assert!(
                 worst < 1e-3,
-                "output {k}: wgpu differs from flex by {worst} of {scale}"
+                "output {k}: wgpu differs from flex by {worst}"
             );
         }
         let ad = gpu.clone().autodiff();

@@ -27,5 +27,7 @@ pub mod ray_marching;
 pub mod ray_sampling;
 pub mod relighting;
 pub mod sampling_report;
+#[cfg(test)]
+mod test_support;
 pub mod upsampler;
 pub mod volume_rendering;

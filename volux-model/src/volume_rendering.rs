@@ -486,7 +486,7 @@ mod tests {
                 sphere().reference_ray(&cfg.camera, origins[i], dirs[i], 20_000, &refs, -1.2);
             hits += usize::from(want.opacity > 0.5);
             assert!(
-                (f64::from(opacity[i]) - want.opacity).abs() < 5e-3,
+                (f64::from(opacity[i]) - want.opacity).abs() < 2e-3,
                 "pixel {i} opacity {} vs {}",
                 opacity[i],
                 want.opacity

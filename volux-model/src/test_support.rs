@@ -1,0 +1,46 @@
+//! Deterministic parameters and inputs for tests, independent of Burn's global random
+//! generator (which tests running in parallel share).
+
+use burn::module::{ModuleMapper, Param};
+use burn::tensor::{DType, Tensor, TensorData};
+use volux_envmap::report::SplitMix64;
+
+/// A standard normal sample (Box-Muller on SplitMix64).
+pub fn normal(rng: &mut SplitMix64) -> f64 {
+    let u = rng.next_f64().max(1e-300);
+    let v = rng.next_f64();
+    (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+}
+
+/// `n` standard normal samples.
+pub fn normals(rng: &mut SplitMix64, n: usize) -> Vec<f64> {
+    (0..n).map(|_| normal(rng)).collect()
+}
+
+/// Replaces every parameter by deterministic N(0, 1) values (biases included, so that no test
+/// relies on zero biases) in `dtype`: `module.map(&mut Reseed::new(seed, dtype))`.
+pub struct Reseed {
+    rng: SplitMix64,
+    dtype: DType,
+}
+
+impl Reseed {
+    pub fn new(seed: u64, dtype: DType) -> Self {
+        Self {
+            rng: SplitMix64::new(seed),
+            dtype,
+        }
+    }
+}
+
+impl ModuleMapper for Reseed {
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        let t = param.val();
+        let dims = t.dims();
+        let values = normals(&mut self.rng, dims.iter().product());
+        Param::from_tensor(Tensor::from_data(
+            TensorData::new(values, dims),
+            (&t.device(), self.dtype),
+        ))
+    }
+}
