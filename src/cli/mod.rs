@@ -1,6 +1,7 @@
 //! Command definitions (clap derive) and dispatch.
 
 mod backend;
+mod data;
 mod envmap;
 mod model;
 
@@ -25,6 +26,9 @@ pub enum Command {
     /// The networks: parameter counts, the renderer's error against samples per ray, speed.
     #[command(subcommand)]
     Model(model::ModelCommand),
+    /// Training data: the built-in synthetic heads.
+    #[command(subcommand)]
+    Data(data::DataCommand),
     /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
     Backend(backend::BackendArgs),
 }
@@ -33,6 +37,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Envmap(cmd) => envmap::run(cmd),
         Command::Model(cmd) => model::run(cmd),
+        Command::Data(cmd) => data::run(cmd),
         Command::Backend(args) => backend::run(args),
     }
 }

@@ -69,8 +69,16 @@ pub enum RelightError {
     },
     #[error("the first light map must have Phong exponent 1 (diffuse), got {0}")]
     FirstNotDiffuse(u32),
-    #[error("{weights} specular weights for {maps} light maps")]
-    Weights { weights: usize, maps: usize },
+    #[error(
+        "{weights} specular weights for {maps} light maps{}",
+        if *per_pixel { format!(" and {pixels} pixels (want {})", maps * pixels) } else { String::new() }
+    )]
+    Weights {
+        weights: usize,
+        maps: usize,
+        pixels: usize,
+        per_pixel: bool,
+    },
     #[error("no light maps")]
     NoMaps,
 }
@@ -121,6 +129,16 @@ impl IntrinsicImage {
     }
 }
 
+/// How the specular layer blends the light maps.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SpecularWeights<'a> {
+    /// One weight per light map for every pixel (a dataset's default).
+    Uniform(&'a [f32]),
+    /// One weight per light map per pixel, pixel-major (`pixels * maps` values): materials
+    /// that vary over the face, like the synthetic heads' oily forehead and wet eyes.
+    PerPixel(&'a [f32]),
+}
+
 /// Relights `image` under light maps `lights` (`lights[0]` is `L_1`; `weights[i]` blends
 /// `lights[i]` into the specular) of an environment rotated by `env_yaw` radians, seen by
 /// `camera`, over `background` (sRGB in [0, 1]).
@@ -132,17 +150,51 @@ pub fn relight(
     camera: &CameraConfig,
     background: Rgb,
 ) -> Result<RelitLayers, RelightError> {
+    relight_weighted(
+        image,
+        lights,
+        SpecularWeights::Uniform(weights),
+        env_yaw,
+        camera,
+        background,
+    )
+}
+
+/// [`relight`] with specular weights that may vary per pixel.
+pub fn relight_weighted(
+    image: &IntrinsicImage,
+    lights: &[&LightMap],
+    weights: SpecularWeights<'_>,
+    env_yaw: f64,
+    camera: &CameraConfig,
+    background: Rgb,
+) -> Result<RelitLayers, RelightError> {
     image.validate()?;
     let first = lights.first().ok_or(RelightError::NoMaps)?;
     if first.exponent() != 1 {
         return Err(RelightError::FirstNotDiffuse(first.exponent()));
     }
-    if weights.len() != lights.len() {
-        return Err(RelightError::Weights {
-            weights: weights.len(),
-            maps: lights.len(),
-        });
-    }
+    let maps = lights.len();
+    let per_pixel = match weights {
+        SpecularWeights::Uniform(w) if w.len() == maps => false,
+        SpecularWeights::PerPixel(w) if w.len() == maps * image.width * image.height => true,
+        SpecularWeights::Uniform(w) | SpecularWeights::PerPixel(w) => {
+            return Err(RelightError::Weights {
+                weights: w.len(),
+                maps,
+                pixels: image.width * image.height,
+                per_pixel: matches!(weights, SpecularWeights::PerPixel(_)),
+            });
+        }
+    };
+    let (SpecularWeights::Uniform(all) | SpecularWeights::PerPixel(all)) = weights;
+    let weights_at = |i: usize| {
+        if per_pixel {
+            &all[i * maps..(i + 1) * maps]
+        } else {
+            all
+        }
+    };
     let (yaw, pitch) = image.pose;
     let [right, up, back] = camera_basis(camera, yaw, pitch);
     let (_, dirs) = camera_rays(camera, yaw, pitch, image.width, image.height);
@@ -171,7 +223,7 @@ pub fn relight(
                 });
                 let r = direction::reflect(*ray, n);
                 d = first.lookup_rotated(n, env_yaw);
-                for (map, w) in lights.iter().zip(weights) {
+                for (map, w) in lights.iter().zip(weights_at(i)) {
                     let l = map.lookup_rotated(r, env_yaw);
                     for (sk, lk) in s.iter_mut().zip(l) {
                         *sk += w * lk;
@@ -357,8 +409,22 @@ mod tests {
             relight(&image, &refs, &[0.1], 0.0, &camera, [0.0; 3]).unwrap_err(),
             RelightError::Weights {
                 weights: 1,
-                maps: 2
+                maps: 2,
+                pixels: 64,
+                per_pixel: false
             }
+        );
+        // Per-pixel weights equal to the uniform ones give the same layers; a wrong count is
+        // an error that says how many were wanted.
+        let repeated: Vec<f32> = [0.1, 0.1].repeat(64);
+        let weighted = SpecularWeights::PerPixel(&repeated);
+        let same = relight_weighted(&image, &refs, weighted, 0.0, &camera, [0.0; 3]).unwrap();
+        assert_eq!(same, ok);
+        let short = SpecularWeights::PerPixel(&repeated[1..]);
+        let err = relight_weighted(&image, &refs, short, 0.0, &camera, [0.0; 3]).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "127 specular weights for 2 light maps and 64 pixels (want 128)"
         );
         assert_eq!(
             relight(&image, &refs[1..], &[0.1], 0.0, &camera, [0.0; 3]).unwrap_err(),
