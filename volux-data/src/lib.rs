@@ -11,8 +11,10 @@
 //! The dataset camera is the model's (`volux_model::ray_sampling`), so that pseudo ground
 //! truth and generated images share one set of conventions.
 
+pub mod batch;
 pub mod contact_sheet;
 pub mod pose_distribution;
 pub mod procedural_sky;
 pub mod relighting;
 pub mod synthetic_head;
+pub mod training_sample;

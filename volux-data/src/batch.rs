@@ -1,0 +1,244 @@
+//! Batches of training examples as Burn tensors, and a loader that makes them on other threads
+//! while training runs.
+//!
+//! A batch is collated on the host into planar `[batch, channels, height, width]` arrays in the
+//! generator's value ranges (photo and relit sRGB mapped to `[-1, 1]`, albedo in `[0, 1]`,
+//! camera-space normals, linear HDR shading) and moved to the training device in one copy per
+//! layer. Batch `i` is a pure function of `i` (see [`BatchLoader`]), so a resumed run sees the
+//! same data as an uninterrupted one.
+
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::thread::JoinHandle;
+
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::training_sample::{LightingDraw, TrainingSample};
+
+/// One batch on the host, planar `[batch, channels, h, w]` arrays.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Batch {
+    pub size: usize,
+    /// Output (high) resolution.
+    pub side: usize,
+    /// Volume (low) resolution.
+    pub side_lo: usize,
+    /// Which batch of the stream this is.
+    pub index: u64,
+    pub photo: Vec<f32>,
+    pub relit: Vec<f32>,
+    pub albedo_hi: Vec<f32>,
+    pub albedo_lo: Vec<f32>,
+    pub normals_lo: Vec<f32>,
+    pub mask: Vec<f32>,
+    pub diffuse: Vec<f32>,
+    pub specular: Vec<f32>,
+    pub poses: Vec<(f64, f64)>,
+    /// The (environment, rotation) each example was lit with; the generator's samples of this
+    /// step are lit with the same draws.
+    pub draws: Vec<LightingDraw>,
+}
+
+/// A batch on a device.
+#[derive(Clone, Debug)]
+pub struct BatchTensors {
+    /// `[b, 3, H, W]`, sRGB in `[-1, 1]` (D_P's reals).
+    pub photo: Tensor<4>,
+    /// `[b, 3, H, W]`, sRGB in `[-1, 1]`.
+    pub relit: Tensor<4>,
+    /// `[b, 3, H, W]`, linear in `[0, 1]` over the background.
+    pub albedo_hi: Tensor<4>,
+    /// `[b, 3, h, w]`.
+    pub albedo_lo: Tensor<4>,
+    /// `[b, 3, h, w]`, camera space, over 0.
+    pub normals_lo: Tensor<4>,
+    /// `[b, 1, H, W]`.
+    pub mask: Tensor<4>,
+    /// `[b, 3, H, W]`, linear HDR.
+    pub diffuse: Tensor<4>,
+    pub specular: Tensor<4>,
+}
+
+/// Appends a row-major `[h * w]` layer of `C`-vectors as `C` planes, mapped by `f`.
+fn push_planar<const C: usize>(out: &mut Vec<f32>, layer: &[[f32; C]], f: impl Fn(f32) -> f32) {
+    for c in 0..C {
+        out.extend(layer.iter().map(|v| f(v[c])));
+    }
+}
+
+impl Batch {
+    /// Collates examples of equal sizes (checked) into a batch.
+    pub fn collate(index: u64, samples: &[TrainingSample]) -> Batch {
+        let first = samples.first().expect("a batch has at least one example");
+        let (side, factor) = (first.side, first.factor);
+        assert!(
+            samples.iter().all(|s| s.side == side && s.factor == factor),
+            "examples of one batch share their sizes"
+        );
+        let to_signed = |v: f32| v * 2.0 - 1.0;
+        let same = |v: f32| v;
+        let mut batch = Batch {
+            size: samples.len(),
+            side,
+            side_lo: side / factor,
+            index,
+            photo: Vec::new(),
+            relit: Vec::new(),
+            albedo_hi: Vec::new(),
+            albedo_lo: Vec::new(),
+            normals_lo: Vec::new(),
+            mask: Vec::new(),
+            diffuse: Vec::new(),
+            specular: Vec::new(),
+            poses: samples.iter().map(|s| s.pose).collect(),
+            draws: samples.iter().map(|s| s.draw).collect(),
+        };
+        for s in samples {
+            push_planar(&mut batch.photo, &s.photo, to_signed);
+            push_planar(&mut batch.relit, &s.relit, to_signed);
+            push_planar(&mut batch.albedo_hi, &s.albedo_hi, same);
+            push_planar(&mut batch.albedo_lo, &s.albedo_lo, same);
+            push_planar(&mut batch.normals_lo, &s.normals_lo, same);
+            batch.mask.extend_from_slice(&s.mask);
+            push_planar(&mut batch.diffuse, &s.diffuse, same);
+            push_planar(&mut batch.specular, &s.specular, same);
+        }
+        batch
+    }
+
+    /// The batch on `device`.
+    pub fn to_tensors(&self, device: &Device) -> BatchTensors {
+        let (b, hi, lo) = (self.size, self.side, self.side_lo);
+        let t = |v: &[f32], c: usize, s: usize| {
+            Tensor::<4>::from_data(TensorData::new(v.to_vec(), [b, c, s, s]), device)
+        };
+        BatchTensors {
+            photo: t(&self.photo, 3, hi),
+            relit: t(&self.relit, 3, hi),
+            albedo_hi: t(&self.albedo_hi, 3, hi),
+            albedo_lo: t(&self.albedo_lo, 3, lo),
+            normals_lo: t(&self.normals_lo, 3, lo),
+            mask: t(&self.mask, 1, hi),
+            diffuse: t(&self.diffuse, 3, hi),
+            specular: t(&self.specular, 3, hi),
+        }
+    }
+}
+
+/// Makes batches `start, start + 1, ...` on a background thread, `prefetch` ahead of the
+/// consumer; the first error ends the stream (and is returned by [`BatchLoader::next`]).
+/// Dropping the loader stops the thread.
+pub struct BatchLoader<E> {
+    receiver: Option<Receiver<Result<Batch, E>>>,
+    worker: Option<JoinHandle<()>>,
+}
+
+impl<E: Send + 'static> BatchLoader<E> {
+    /// `make(i)` builds batch `i`; it should be a pure function of `i` (it may use rayon).
+    pub fn spawn(
+        start: u64,
+        prefetch: usize,
+        make: impl Fn(u64) -> Result<Batch, E> + Send + 'static,
+    ) -> BatchLoader<E> {
+        let (sender, receiver): (SyncSender<Result<Batch, E>>, _) = sync_channel(prefetch.max(1));
+        let worker = std::thread::Builder::new()
+            .name("volux-batches".into())
+            .spawn(move || {
+                for i in start.. {
+                    let batch = make(i);
+                    let failed = batch.is_err();
+                    if sender.send(batch).is_err() || failed {
+                        return;
+                    }
+                }
+            })
+            .expect("spawning the batch thread");
+        BatchLoader {
+            receiver: Some(receiver),
+            worker: Some(worker),
+        }
+    }
+
+    /// The next batch, waiting for it if it is not ready; `None` after an error was returned.
+    pub fn next_batch(&mut self) -> Option<Result<Batch, E>> {
+        self.receiver.as_ref()?.recv().ok()
+    }
+}
+
+impl<E> Drop for BatchLoader<E> {
+    fn drop(&mut self) {
+        // Closing the channel makes the worker's next send fail, which ends it.
+        self.receiver.take();
+        if let Some(worker) = self.worker.take() {
+            let _ = worker.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(side: usize, value: f32) -> TrainingSample {
+        let n = side * side;
+        let lo = n / 4;
+        TrainingSample {
+            side,
+            factor: 2,
+            pose: (value as f64, 0.0),
+            draw: LightingDraw { map: 1, yaw: 0.5 },
+            photo: vec![[value, 0.0, 1.0]; n],
+            relit: vec![[0.5; 3]; n],
+            albedo_hi: (0..n).map(|i| [i as f32, value, 0.0]).collect(),
+            albedo_lo: vec![[value; 3]; lo],
+            normals_lo: vec![[0.0, 0.0, value]; lo],
+            mask: vec![value; n],
+            diffuse: vec![[2.0; 3]; n],
+            specular: vec![[3.0; 3]; n],
+        }
+    }
+
+    #[test]
+    fn collation_is_planar_and_in_the_generators_ranges() {
+        let batch = Batch::collate(7, &[sample(4, 0.25), sample(4, 1.0)]);
+        let t = batch.to_tensors(&Device::flex());
+        assert_eq!(t.photo.dims(), [2, 3, 4, 4]);
+        assert_eq!(t.albedo_lo.dims(), [2, 3, 2, 2]);
+        assert_eq!(t.mask.dims(), [2, 1, 4, 4]);
+        let photo: Vec<f32> = t.photo.into_data().to_vec().unwrap();
+        // Example 0, red plane: 0.25 -> -0.5; green plane 0 -> -1; blue 1 -> 1.
+        assert_eq!(&photo[..16], &[-0.5; 16]);
+        assert_eq!(&photo[16..32], &[-1.0; 16]);
+        assert_eq!(&photo[32..48], &[1.0; 16]);
+        assert_eq!(photo[48], 1.0);
+        let albedo: Vec<f32> = t.albedo_hi.into_data().to_vec().unwrap();
+        // Red plane of example 1 holds the pixel index, row-major.
+        assert_eq!(&albedo[48..52], &[0.0, 1.0, 2.0, 3.0]);
+        assert_eq!(
+            (batch.index, batch.poses[1], batch.draws[0].map),
+            (7, (1.0, 0.0), 1)
+        );
+    }
+
+    #[test]
+    fn the_loader_streams_batches_in_order_and_stops_at_an_error() {
+        let mut loader = BatchLoader::spawn(3, 2, |i| {
+            if i == 6 {
+                Err(format!("batch {i} failed"))
+            } else {
+                Ok(Batch::collate(i, &[sample(2, i as f32)]))
+            }
+        });
+        let indices: Vec<u64> = (0..3)
+            .map(|_| loader.next_batch().unwrap().unwrap().index)
+            .collect();
+        assert_eq!(indices, [3, 4, 5]);
+        assert_eq!(loader.next_batch().unwrap().unwrap_err(), "batch 6 failed");
+        assert!(loader.next_batch().is_none());
+        // Dropping a loader that is still producing ends its thread.
+        let mut endless = BatchLoader::spawn(0, 1, |i| {
+            Ok::<_, String>(Batch::collate(i, &[sample(2, 0.0)]))
+        });
+        assert_eq!(endless.next_batch().unwrap().unwrap().index, 0);
+        drop(endless);
+    }
+}

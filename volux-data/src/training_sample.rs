@@ -1,0 +1,270 @@
+//! One training example with every layer the discriminators see (paper appendix A): the photo
+//! (for D_P), albedo at the output and the volume resolution (D_A), normals at the volume
+//! resolution (D_G), the mask, and diffuse, specular and relit layers under one (HDRI, yaw)
+//! draw (D_S), in the generator's conventions:
+//!
+//! - albedo is linear, composited over the background's albedo (its linearised colour);
+//! - normals are camera space times the mask (over 0), area-averaged to the volume resolution
+//!   without renormalising, which is what accumulating unit normals with opacity weights gives;
+//! - diffuse and specular are linear HDR times the mask;
+//! - photo and relit are sRGB over the background.
+//!
+//! Low-resolution layers are area averages of the high-resolution ones (an exact box filter
+//! over `factor x factor` blocks).
+
+use volux_envmap::io::srgb_to_linear;
+use volux_envmap::{LightMap, Rgb};
+
+use crate::relighting::{IntrinsicImage, RelightError, SpecularWeights, relight_weighted};
+use crate::synthetic_head::{self, HeadRender, SyntheticError, SyntheticHead};
+
+/// Which light maps, rotated by how much, lit a sample.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LightingDraw {
+    /// Index of the environment in the collection's light-map bank.
+    pub map: usize,
+    /// Rotation of the environment about +y, radians in `[0, 2 pi)`.
+    pub yaw: f64,
+}
+
+/// Where a sample's intrinsic layers and photo come from.
+pub enum Intrinsics<'a> {
+    /// A synthetic head and its render: per-pixel specular weights, and a photo rendered under
+    /// the same light as the pseudo ground truth.
+    Synthetic {
+        head: &'a SyntheticHead,
+        render: &'a HeadRender,
+    },
+    /// A folder dataset's image: its own photo, the dataset's specular weights.
+    Photo {
+        image: &'a IntrinsicImage,
+        photo: &'a [Rgb],
+        specular_weights: &'a [f32],
+    },
+}
+
+/// All layers of one example, row-major, at `side x side` (high) and
+/// `side / factor` (low) resolution.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainingSample {
+    pub side: usize,
+    pub factor: usize,
+    pub pose: (f64, f64),
+    pub draw: LightingDraw,
+    pub photo: Vec<Rgb>,
+    pub relit: Vec<Rgb>,
+    pub albedo_hi: Vec<Rgb>,
+    pub albedo_lo: Vec<Rgb>,
+    pub normals_lo: Vec<[f32; 3]>,
+    pub mask: Vec<f32>,
+    pub diffuse: Vec<Rgb>,
+    pub specular: Vec<Rgb>,
+}
+
+/// Why a sample cannot be made.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SampleError {
+    #[error("image is {width}x{height}; training images must be square")]
+    NotSquare { width: usize, height: usize },
+    #[error("image side {side} is not a multiple of the low-resolution factor {factor}")]
+    Factor { side: usize, factor: usize },
+    #[error("photo has {got} pixels, the image has {want}")]
+    PhotoSize { got: usize, want: usize },
+    #[error(transparent)]
+    Relight(#[from] RelightError),
+    #[error(transparent)]
+    Synthetic(#[from] SyntheticError),
+}
+
+/// Makes a training example from `intrinsics` lit by `lights` (the draw's light maps, exponents
+/// 1, 16, 32, 64) rotated by `draw.yaw`, over `background` (sRGB), with low-resolution layers
+/// `factor` times smaller.
+pub fn make_sample(
+    intrinsics: Intrinsics<'_>,
+    lights: &[&LightMap],
+    draw: LightingDraw,
+    background: Rgb,
+    factor: usize,
+) -> Result<TrainingSample, SampleError> {
+    let (image, camera) = match &intrinsics {
+        Intrinsics::Synthetic { render, .. } => (&render.image, render.camera.clone()),
+        Intrinsics::Photo { image, .. } => (*image, volux_model::ray_sampling::CameraConfig::new()),
+    };
+    let (side, height) = (image.width, image.height);
+    if side != height {
+        return Err(SampleError::NotSquare {
+            width: side,
+            height,
+        });
+    }
+    if factor == 0 || side % factor != 0 {
+        return Err(SampleError::Factor { side, factor });
+    }
+    let (layers, photo) = match intrinsics {
+        Intrinsics::Synthetic { head, render } => {
+            let shading = synthetic_head::shade(head, render, lights, draw.yaw, background)?;
+            (shading.layers, shading.photo)
+        }
+        Intrinsics::Photo {
+            image,
+            photo,
+            specular_weights,
+        } => {
+            if photo.len() != side * side {
+                return Err(SampleError::PhotoSize {
+                    got: photo.len(),
+                    want: side * side,
+                });
+            }
+            let weights = SpecularWeights::Uniform(specular_weights);
+            let layers = relight_weighted(image, lights, weights, draw.yaw, &camera, background)?;
+            (layers, photo.to_vec())
+        }
+    };
+    let bg_albedo = background.map(srgb_to_linear);
+    let albedo_hi: Vec<Rgb> = image
+        .albedo
+        .iter()
+        .zip(&image.mask)
+        .map(|(a, &m)| std::array::from_fn(|k| a[k] * m + bg_albedo[k] * (1.0 - m)))
+        .collect();
+    let masked_normals: Vec<[f32; 3]> = image
+        .normals
+        .iter()
+        .zip(&image.mask)
+        .map(|(n, &m)| n.map(|c| c * m))
+        .collect();
+    Ok(TrainingSample {
+        side,
+        factor,
+        pose: image.pose,
+        draw,
+        photo,
+        relit: layers.relit,
+        albedo_lo: area_downsample(&albedo_hi, side, factor),
+        albedo_hi,
+        normals_lo: area_downsample(&masked_normals, side, factor),
+        mask: image.mask.clone(),
+        diffuse: layers.diffuse,
+        specular: layers.specular,
+    })
+}
+
+/// Box-filter downsampling of a square `side x side` layer by `factor`.
+pub fn area_downsample(layer: &[[f32; 3]], side: usize, factor: usize) -> Vec<[f32; 3]> {
+    let lo = side / factor;
+    let scale = 1.0 / (factor * factor) as f32;
+    let mut out = vec![[0.0f32; 3]; lo * lo];
+    for y in 0..lo * factor {
+        for x in 0..lo * factor {
+            let o = &mut out[(y / factor) * lo + x / factor];
+            let v = layer[y * side + x];
+            for k in 0..3 {
+                o[k] += v[k] * scale;
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synthetic_head::RenderSettings;
+    use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
+
+    #[test]
+    fn area_downsampling_averages_blocks() {
+        let layer: Vec<[f32; 3]> = (0..16).map(|i| [i as f32, 1.0, -(i as f32)]).collect();
+        let lo = area_downsample(&layer, 4, 2);
+        assert_eq!(lo.len(), 4);
+        // Block (0, 0): pixels 0, 1, 4, 5.
+        assert_eq!(lo[0], [2.5, 1.0, -2.5]);
+        assert_eq!(lo[3], [12.5, 1.0, -12.5]);
+    }
+
+    #[test]
+    fn the_same_head_under_two_environments_keeps_its_intrinsic_layers() {
+        let head = SyntheticHead::from_seed(4);
+        let render = synthetic_head::render(&head, (0.1, 0.0), &RenderSettings::square(32));
+        let sun = crate::procedural_sky::SunSky {
+            elevation: 0.5,
+            azimuth: 1.0,
+            turbidity: 3.0,
+            sun_irradiance: 20.0,
+            sun_radius: 0.02,
+        }
+        .render(32)
+        .unwrap();
+        let grey = EnvMap::constant(16, [0.5; 3]).unwrap();
+        let make = |map: &EnvMap, yaw: f64| {
+            let set = preconvolve(map, &PreconvolveOptions::default()).unwrap();
+            let lights: Vec<&LightMap> = set.maps().iter().collect();
+            let intrinsics = Intrinsics::Synthetic {
+                head: &head,
+                render: &render,
+            };
+            make_sample(
+                intrinsics,
+                &lights,
+                LightingDraw { map: 0, yaw },
+                [0.2; 3],
+                2,
+            )
+            .unwrap()
+        };
+        let (a, b) = (make(&sun, 0.3), make(&grey, 2.0));
+        assert_eq!(a.albedo_hi, b.albedo_hi);
+        assert_eq!(a.albedo_lo, b.albedo_lo);
+        assert_eq!(a.normals_lo, b.normals_lo);
+        assert_eq!(a.mask, b.mask);
+        assert_ne!(a.relit, b.relit);
+        assert_ne!(a.photo, b.photo);
+        // Background pixels carry the background: albedo in linear, relit and photo in sRGB.
+        let corner = 0;
+        assert_eq!(a.mask[corner], 0.0);
+        assert!((a.albedo_hi[corner][0] - srgb_to_linear(0.2)).abs() < 1e-7);
+        assert_eq!(a.relit[corner], [0.2; 3]);
+        assert_eq!(a.photo[corner], [0.2; 3]);
+        assert_eq!(a.normals_lo[corner], [0.0; 3]);
+        assert_eq!((a.albedo_lo.len(), a.normals_lo.len()), (256, 256));
+    }
+
+    #[test]
+    fn bad_sizes_are_errors() {
+        let image = IntrinsicImage {
+            width: 6,
+            height: 6,
+            albedo: vec![[0.5; 3]; 36],
+            normals: vec![[0.0, 0.0, 1.0]; 36],
+            mask: vec![1.0; 36],
+            pose: (0.0, 0.0),
+        };
+        let set = preconvolve(
+            &EnvMap::constant(8, [1.0; 3]).unwrap(),
+            &PreconvolveOptions::default(),
+        )
+        .unwrap();
+        let lights: Vec<&LightMap> = set.maps().iter().collect();
+        let draw = LightingDraw { map: 0, yaw: 0.0 };
+        let photo = vec![[0.0; 3]; 36];
+        let weights = [0.0, 0.1, 0.0, 0.0];
+        let intrinsics = |photo| Intrinsics::Photo {
+            image: &image,
+            photo,
+            specular_weights: &weights,
+        };
+        assert_eq!(
+            make_sample(intrinsics(&photo), &lights, draw, [0.0; 3], 4).unwrap_err(),
+            SampleError::Factor { side: 6, factor: 4 }
+        );
+        assert_eq!(
+            make_sample(intrinsics(&photo[1..]), &lights, draw, [0.0; 3], 2).unwrap_err(),
+            SampleError::PhotoSize { got: 35, want: 36 }
+        );
+        let ok = make_sample(intrinsics(&photo), &lights, draw, [0.0; 3], 3).unwrap();
+        // Constant unit environment, facing normals: diffuse 1 everywhere.
+        assert!(ok.diffuse.iter().flatten().all(|d| (d - 1.0).abs() < 2e-3));
+        assert_eq!(ok.albedo_lo.len(), 4);
+    }
+}
