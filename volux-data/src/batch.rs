@@ -204,13 +204,13 @@ mod tests {
         assert_eq!(t.photo.dims(), [2, 3, 4, 4]);
         assert_eq!(t.albedo_lo.dims(), [2, 3, 2, 2]);
         assert_eq!(t.mask.dims(), [2, 1, 4, 4]);
-        let photo: Vec<f32> = t.photo.into_data().to_vec().unwrap();
+        let photo: Vec<f32> = t.photo.into_data().try_to_vec::<f32>().unwrap();
         // Example 0, red plane: 0.25 -> -0.5; green plane 0 -> -1; blue 1 -> 1.
         assert_eq!(&photo[..16], &[-0.5; 16]);
         assert_eq!(&photo[16..32], &[-1.0; 16]);
         assert_eq!(&photo[32..48], &[1.0; 16]);
         assert_eq!(photo[48], 1.0);
-        let albedo: Vec<f32> = t.albedo_hi.into_data().to_vec().unwrap();
+        let albedo: Vec<f32> = t.albedo_hi.into_data().try_to_vec::<f32>().unwrap();
         // Red plane of example 1 holds the pixel index, row-major.
         assert_eq!(&albedo[48..52], &[0.0, 1.0, 2.0, 3.0]);
         assert_eq!(
