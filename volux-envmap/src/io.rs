@@ -1,10 +1,10 @@
 //! Reading and writing environment maps and light maps.
 //!
 //! Reads OpenEXR (any compression the `exr` crate supports, DWAA/DWAB included), Radiance
-//! `.hdr`, and 8- or 16-bit PNG/JPEG (sRGB-decoded to linear). Writes OpenEXR (f32, lossless
-//! ZIP) and tone-mapped 8-bit PNG previews. Every write goes to a temporary file beside the
-//! target and is renamed into place, so an interrupted write never leaves a half-written file
-//! under the final name.
+//! `.hdr`, and 8- or 16-bit PNG/JPEG (sRGB-decoded to linear, or kept as stored values by
+//! [`read_encoded`]). Writes OpenEXR (f32, lossless ZIP) and 8-bit PNG (tone-mapped previews,
+//! encoded data). Every write goes to a temporary file beside the target and is renamed into
+//! place, so an interrupted write never leaves a half-written file under the final name.
 
 use std::fs;
 use std::io::{BufWriter, Write};
@@ -40,8 +40,10 @@ impl Format {
     }
 }
 
-/// Decoded pixels before validation: `(width, height, row-major linear RGB)`. Values may be
-/// negative or non-finite; [`EnvMap::validated`] decides what to do with them.
+/// Decoded pixels before validation: `(width, height, row-major RGB)`, linear from
+/// [`read_raw`], stored values from [`read_encoded`]. Values may be negative or non-finite;
+/// [`EnvMap::validated`] decides what to do with them.
+#[derive(Clone, Debug, PartialEq)]
 pub struct RawImage {
     pub width: usize,
     pub height: usize,
@@ -102,24 +104,7 @@ fn read_exr(path: &Path) -> Result<RawImage, EnvMapError> {
 }
 
 fn read_with_image(path: &Path) -> Result<RawImage, EnvMapError> {
-    let format = if Format::of(path)? == Format::Hdr {
-        "Radiance HDR"
-    } else {
-        "PNG/JPEG"
-    };
-    let decode_err = |message: String| EnvMapError::Decode {
-        path: path.to_path_buf(),
-        format,
-        message,
-    };
-    let reader = image::ImageReader::open(path).map_err(|source| EnvMapError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let reader = reader
-        .with_guessed_format()
-        .map_err(|e| decode_err(e.to_string()))?;
-    let img = reader.decode().map_err(|e| decode_err(e.to_string()))?;
+    let img = decode_with_image(path)?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     use image::ColorType as C;
     let texels: Vec<Rgb> = match img.color() {
@@ -147,6 +132,59 @@ fn read_with_image(path: &Path) -> Result<RawImage, EnvMapError> {
         height,
         texels,
     })
+}
+
+/// Reads an 8- or 16-bit PNG or JPEG as the values it stores, scaled to [0, 1], without the
+/// sRGB decoding of [`read_raw`]: for sRGB images kept encoded (photos) and for data kept in
+/// images (normal maps, masks). Grey images give three equal channels; alpha is dropped.
+pub fn read_encoded(path: &Path) -> Result<RawImage, EnvMapError> {
+    if Format::of(path)? != Format::Ldr {
+        return Err(EnvMapError::UnsupportedFormat {
+            path: path.to_path_buf(),
+        });
+    }
+    let img = decode_with_image(path)?;
+    let (width, height) = (img.width() as usize, img.height() as usize);
+    use image::ColorType as C;
+    let texels: Vec<Rgb> = match img.color() {
+        C::L16 | C::La16 | C::Rgb16 | C::Rgba16 => img
+            .into_rgb16()
+            .pixels()
+            .map(|p| p.0.map(|v| f32::from(v) / 65535.0))
+            .collect(),
+        _ => img
+            .into_rgb8()
+            .pixels()
+            .map(|p| p.0.map(|v| f32::from(v) / 255.0))
+            .collect(),
+    };
+    Ok(RawImage {
+        width,
+        height,
+        texels,
+    })
+}
+
+/// Opens and decodes a file with the `image` crate (Radiance HDR, PNG, JPEG).
+fn decode_with_image(path: &Path) -> Result<image::DynamicImage, EnvMapError> {
+    let format = if Format::of(path)? == Format::Hdr {
+        "Radiance HDR"
+    } else {
+        "PNG/JPEG"
+    };
+    let decode_err = |message: String| EnvMapError::Decode {
+        path: path.to_path_buf(),
+        format,
+        message,
+    };
+    let reader = image::ImageReader::open(path).map_err(|source| EnvMapError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let reader = reader
+        .with_guessed_format()
+        .map_err(|e| decode_err(e.to_string()))?;
+    reader.decode().map_err(|e| decode_err(e.to_string()))
 }
 
 /// The sRGB transfer function, decoded: 8-bit display value in [0, 1] to linear.
@@ -405,6 +443,35 @@ mod tests {
         assert_eq!(m.texel(0, 0)[0], 0.0);
         assert!((m.texel(0, 0)[1] - 0.215_861).abs() < 1e-5);
         assert_eq!(m.texel(1, 0), [1.0, 1.0, 1.0]);
+    }
+
+    #[test]
+    fn encoded_reading_keeps_the_stored_values() {
+        let dir = tempfile::tempdir().unwrap();
+        let png = dir.path().join("n.png");
+        save_png(&png, 2, 1, &[[0, 128, 255], [64, 64, 64]]).unwrap();
+        let raw = read_encoded(&png).unwrap();
+        assert_eq!((raw.width, raw.height), (2, 1));
+        assert_eq!(raw.texels[0], [0.0, 128.0 / 255.0, 1.0]);
+        assert_eq!(raw.texels[1], [64.0 / 255.0; 3]);
+        // 16-bit grey: three equal channels at 16-bit precision.
+        let grey = dir.path().join("g.png");
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(1, 1, vec![1000u16])
+            .unwrap()
+            .save(&grey)
+            .unwrap();
+        assert_eq!(
+            read_encoded(&grey).unwrap().texels[0],
+            [1000.0 / 65535.0; 3]
+        );
+        let e = read_encoded(&dir.path().join("m.exr")).unwrap_err();
+        assert!(matches!(e, EnvMapError::UnsupportedFormat { .. }), "{e}");
+        fs::write(&png, b"garbage").unwrap();
+        let e = read_encoded(&png).unwrap_err();
+        assert!(
+            matches!(e, EnvMapError::Decode { .. }) && e.to_string().contains("n.png"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -1,0 +1,848 @@
+//! Folder datasets: a person's own photos with the intrinsic layers of each (paper appendix A;
+//! DESIGN.md, "Data"). Any decomposition tool can make the albedo, normals and masks; the
+//! lighting half of the pseudo ground truth is computed from them by [`crate::relighting`].
+//!
+//! # Layout
+//!
+//! ```text
+//! my_faces/
+//!   photos/   NAME.png | .jpg | .jpeg          sRGB photos (required)
+//!   albedo/   NAME.png | .jpg | .jpeg | .exr   albedo: PNG/JPEG are sRGB and linearised, EXR is linear (required)
+//!   normals/  NAME.png | .exr                  camera-space normals: PNG stores RGB = (n + 1) / 2, EXR stores n (required)
+//!   masks/    NAME.png | .jpg | .jpeg          foreground coverage in [0, 1], first channel (optional)
+//!   poses.csv                                  header `name,yaw,pitch`, radians, one row per NAME (optional)
+//! ```
+//!
+//! - Files are matched by file stem (`NAME`); extensions are case-insensitive. Every photo
+//!   needs an albedo and a normal map of the same size, and every albedo, normal map or mask
+//!   needs a photo. Hidden files (names starting with `.`) are skipped; other files and folders
+//!   in the layout's folders are ignored with a warning ([`FolderDataset::ignored`] lists them).
+//! - Normals are in camera space (DESIGN.md, "Conventions"): +x right, +y up, +z towards the
+//!   camera. A PNG normal map's background grey `(0.5, 0.5, 0.5)` is the zero normal.
+//! - A mask is optional per photo. Without one, the mask is 1 where the decoded normal is
+//!   longer than [`MASK_FROM_NORMAL_LENGTH`] and 0 elsewhere: the background of a normal map
+//!   is its zero normal.
+//! - Without `poses.csv` every photo is frontal, pose `(0, 0)`. With it, every photo has
+//!   exactly one row; yaw and pitch follow the dataset camera (`volux_model::ray_sampling`),
+//!   pitch strictly between -pi/2 and pi/2. Blank lines, spaces around fields, a UTF-8 byte
+//!   order mark and CRLF line ends are accepted.
+//!
+//! [`FolderDataset::open`] only lists the folders and reads `poses.csv`;
+//! [`FolderDataset::load`] decodes one sample. Normals of foreground pixels (mask > 0) are
+//! made unit length: those further than [`UNIT_TOLERANCE`] from it are counted as
+//! renormalised, those shorter than [`DEGENERATE_LENGTH`] are counted as degenerate and become
+//! `(0, 0, 1)`. Background normals (mask 0) are set to zero, like a normal map's background
+//! and the generator's normal maps over a background of 0. Bad input is an error naming the
+//! file, folder or name at fault, never a panic. [`write_dataset`] writes samples in this
+//! layout.
+
+use std::collections::btree_map::Entry;
+use std::collections::{BTreeMap, BTreeSet};
+use std::fmt::Write as _;
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use volux_envmap::io::{self, Format, RawImage};
+use volux_envmap::{EnvMapError, Rgb};
+
+use crate::relighting::IntrinsicImage;
+
+/// Decoded normals whose length differs from 1 by more than this are counted as renormalised.
+///
+/// 8-bit quantisation of `(n + 1) / 2` moves each component by at most 1/255 and a unit
+/// normal's length by at most `sqrt(3) / 255 = 0.0068` (0.0065 measured over 200 000
+/// directions with rounding, 0.0132 with an encoder that truncates, and 0.0067 rad in
+/// direction); 0.02 counts neither, and still counts normals that are not unit length by
+/// mistake (a map scaled by 0.9, or stored as `n` in a PNG).
+pub const UNIT_TOLERANCE: f32 = 0.02;
+
+/// Foreground normals shorter than this have no usable direction: they become `(0, 0, 1)` and
+/// are counted as degenerate. 8-bit quantisation alone turns a direction of this length by up
+/// to 0.0068 / 0.1 rad (4 degrees); an encoded zero normal decodes to length 0.0068.
+pub const DEGENERATE_LENGTH: f32 = 0.1;
+
+/// Without a mask, pixels whose decoded normal is longer than this are foreground (mask 1).
+pub const MASK_FROM_NORMAL_LENGTH: f32 = 0.5;
+
+/// The name of the optional pose file in a dataset's root.
+pub const POSES_FILE: &str = "poses.csv";
+
+/// The longest list of names an error message spells out.
+const LISTED_NAMES: usize = 20;
+
+/// One folder of the layout and the extensions it accepts.
+#[derive(Clone, Copy, Debug)]
+struct Layer {
+    folder: &'static str,
+    extensions: &'static [&'static str],
+}
+
+const PHOTOS: Layer = Layer {
+    folder: "photos",
+    extensions: &["png", "jpg", "jpeg"],
+};
+const ALBEDO: Layer = Layer {
+    folder: "albedo",
+    extensions: &["png", "jpg", "jpeg", "exr"],
+};
+const NORMALS: Layer = Layer {
+    folder: "normals",
+    extensions: &["png", "exr"],
+};
+const MASKS: Layer = Layer {
+    folder: "masks",
+    extensions: &["png", "jpg", "jpeg"],
+};
+
+/// What is wrong with a folder dataset, or with samples to write as one. Every message names
+/// the file, folder or name at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum FolderError {
+    /// The dataset root does not exist.
+    #[error("{}: no such folder", path.display())]
+    NoSuchFolder { path: PathBuf },
+    /// The dataset root, or a folder of the layout, is a file.
+    #[error("{}: not a folder", path.display())]
+    NotAFolder { path: PathBuf },
+    /// Required folders of the layout are missing.
+    #[error(
+        "{}: missing {}; a folder dataset holds photos/, albedo/ and normals/ (masks/ and {POSES_FILE} are optional)",
+        root.display(),
+        folders.iter().map(|f| format!("{f}/")).collect::<Vec<_>>().join(", ")
+    )]
+    MissingFolders {
+        root: PathBuf,
+        folders: Vec<&'static str>,
+    },
+    /// `photos/` holds no photo.
+    #[error(
+        "{}: no photos (.png, .jpg or .jpeg){}",
+        folder.display(),
+        if *ignored > 0 { format!("; {ignored} other file(s) ignored") } else { String::new() }
+    )]
+    NoPhotos { folder: PathBuf, ignored: usize },
+    /// Two files in one folder share a name (`a.png` and `a.jpg`).
+    #[error(
+        "two files for one name: {}",
+        pairs.iter()
+            .map(|(a, b)| format!("{} and {}", a.display(), b.display()))
+            .collect::<Vec<_>>()
+            .join("; ")
+    )]
+    DuplicateNames { pairs: Vec<(PathBuf, PathBuf)> },
+    /// Photos without an albedo or normal map, or layers without a photo: per folder, the
+    /// names without their counterpart.
+    #[error("{}: files do not match up by name: {}", root.display(), unmatched_list(missing, orphans))]
+    Unmatched {
+        root: PathBuf,
+        /// Folders with no file for some photos: `(folder, names)`.
+        missing: Vec<(&'static str, Vec<String>)>,
+        /// Folders with files that have no photo: `(folder, names)`.
+        orphans: Vec<(&'static str, Vec<String>)>,
+    },
+    /// A layer's image is not the size of its photo.
+    #[error(
+        "{stem}: {layer} {} is {}x{}, the photo is {}x{}",
+        path.display(), size.0, size.1, photo.0, photo.1
+    )]
+    SizeMismatch {
+        stem: String,
+        layer: &'static str,
+        path: PathBuf,
+        /// The layer's `(width, height)`.
+        size: (usize, usize),
+        /// The photo's `(width, height)`.
+        photo: (usize, usize),
+    },
+    /// NaN or infinite values in an EXR layer.
+    #[error("{}: {count} pixel(s) with NaN or infinite values (first at x={x}, y={y})", path.display())]
+    NonFinite {
+        path: PathBuf,
+        count: usize,
+        x: usize,
+        y: usize,
+    },
+    /// A file could not be read or decoded, or written (the path and the reason).
+    #[error(transparent)]
+    Image(#[from] EnvMapError),
+    /// A folder could not be listed or created, or a file read.
+    #[error("{}: {source}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The first line of `poses.csv` is not `name,yaw,pitch`.
+    #[error("{}: line {line}: the header must be `name,yaw,pitch`, found `{found}`", path.display())]
+    PosesHeader {
+        path: PathBuf,
+        line: usize,
+        found: String,
+    },
+    /// A row of `poses.csv` without exactly three fields.
+    #[error("{}: line {line}: expected 3 fields `name,yaw,pitch`, found {found}", path.display())]
+    PoseFields {
+        path: PathBuf,
+        line: usize,
+        found: usize,
+    },
+    /// A yaw or pitch that is not a number, not finite, or a pitch out of range.
+    #[error("{}: line {line}: {column} `{value}` {reason}", path.display())]
+    PoseValue {
+        path: PathBuf,
+        line: usize,
+        column: &'static str,
+        value: String,
+        reason: &'static str,
+    },
+    /// A row of `poses.csv` for a name with no photo.
+    #[error(
+        "{}: line {line}: no photo named `{stem}` (names are file stems, without extension)",
+        path.display()
+    )]
+    PoseUnknownName {
+        path: PathBuf,
+        line: usize,
+        stem: String,
+    },
+    /// Two rows of `poses.csv` for one name.
+    #[error("{}: line {line}: a second row for `{stem}` (the first is on line {first})", path.display())]
+    PoseDuplicate {
+        path: PathBuf,
+        line: usize,
+        first: usize,
+        stem: String,
+    },
+    /// Photos with no row in `poses.csv`.
+    #[error("{}: no row for {}", path.display(), name_list(stems))]
+    PosesMissing { path: PathBuf, stems: Vec<String> },
+    /// [`write_dataset`] writes into a new or empty folder only.
+    #[error("{}: not empty; write a folder dataset into a new or empty folder", path.display())]
+    NotEmpty { path: PathBuf },
+    /// [`write_dataset`] was given no samples.
+    #[error("{}: no samples to write", root.display())]
+    NothingToWrite { root: PathBuf },
+    /// A sample [`write_dataset`] cannot write.
+    #[error("sample `{stem}`: {reason}")]
+    InvalidSample { stem: String, reason: String },
+}
+
+/// `names` as `a, b, c`, at most [`LISTED_NAMES`] of them.
+fn name_list(names: &[String]) -> String {
+    let mut s = names
+        .iter()
+        .take(LISTED_NAMES)
+        .map(String::as_str)
+        .collect::<Vec<_>>()
+        .join(", ");
+    if names.len() > LISTED_NAMES {
+        let _ = write!(s, " and {} more", names.len() - LISTED_NAMES);
+    }
+    s
+}
+
+fn unmatched_list(
+    missing: &[(&'static str, Vec<String>)],
+    orphans: &[(&'static str, Vec<String>)],
+) -> String {
+    let accepted = |folder: &str| {
+        let layer = [ALBEDO, NORMALS, MASKS, PHOTOS]
+            .into_iter()
+            .find(|l| l.folder == folder);
+        layer.map_or(String::new(), |l| {
+            let exts: Vec<String> = l.extensions.iter().map(|e| format!(".{e}")).collect();
+            format!(" {}", exts.join("/"))
+        })
+    };
+    let missing = missing.iter().map(|(folder, names)| {
+        format!(
+            "{folder}/ has no{} file for: {}",
+            accepted(folder),
+            name_list(names)
+        )
+    });
+    let orphans = orphans
+        .iter()
+        .map(|(folder, names)| format!("{folder}/ has files with no photo: {}", name_list(names)));
+    missing.chain(orphans).collect::<Vec<_>>().join("; ")
+}
+
+/// The files of one photo.
+#[derive(Clone, Debug)]
+struct SampleFiles {
+    stem: String,
+    photo: PathBuf,
+    albedo: PathBuf,
+    normals: PathBuf,
+    mask: Option<PathBuf>,
+    pose: (f64, f64),
+}
+
+/// A folder dataset, listed and checked but not decoded (module docs: the layout).
+#[derive(Clone, Debug)]
+pub struct FolderDataset {
+    root: PathBuf,
+    entries: Vec<SampleFiles>,
+    ignored: Vec<PathBuf>,
+}
+
+/// One decoded sample of a folder dataset.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FolderSample {
+    /// The file stem shared by the sample's files.
+    pub stem: String,
+    /// The photo, sRGB-encoded in [0, 1], row-major from the top-left pixel.
+    pub photo: Vec<Rgb>,
+    /// Linear albedo, camera-space normals (unit in the foreground, zero where the mask is 0),
+    /// the mask and the pose; the photo's size.
+    pub image: IntrinsicImage,
+    /// Foreground normals further than [`UNIT_TOLERANCE`] from unit length, renormalised.
+    pub renormalised: usize,
+    /// Foreground normals shorter than [`DEGENERATE_LENGTH`], set to `(0, 0, 1)`.
+    pub degenerate: usize,
+}
+
+impl FolderDataset {
+    /// Lists a folder dataset at `root` and checks that its files match up and that
+    /// `poses.csv` (if any) is valid. Decodes no image, so it is cheap; samples are sorted by
+    /// name. Files outside the layout are ignored with a warning.
+    pub fn open(root: &Path) -> Result<FolderDataset, FolderError> {
+        if !is_folder(root)? {
+            return Err(FolderError::NoSuchFolder {
+                path: root.to_path_buf(),
+            });
+        }
+        let mut missing_folders = Vec::new();
+        for layer in [PHOTOS, ALBEDO, NORMALS] {
+            if !is_folder(&root.join(layer.folder))? {
+                missing_folders.push(layer.folder);
+            }
+        }
+        if !missing_folders.is_empty() {
+            return Err(FolderError::MissingFolders {
+                root: root.to_path_buf(),
+                folders: missing_folders,
+            });
+        }
+        let has_masks = is_folder(&root.join(MASKS.folder))?;
+
+        let mut duplicates = Vec::new();
+        let mut ignored = Vec::new();
+        let mut scan_layer = |layer: Layer| scan(root, layer, &mut duplicates, &mut ignored);
+        let photos = scan_layer(PHOTOS)?;
+        let albedo = scan_layer(ALBEDO)?;
+        let normals = scan_layer(NORMALS)?;
+        let masks = if has_masks {
+            scan_layer(MASKS)?
+        } else {
+            BTreeMap::new()
+        };
+        if !duplicates.is_empty() {
+            return Err(FolderError::DuplicateNames { pairs: duplicates });
+        }
+        if photos.is_empty() {
+            let folder = root.join(PHOTOS.folder);
+            let ignored = ignored.iter().filter(|p| p.starts_with(&folder)).count();
+            return Err(FolderError::NoPhotos { folder, ignored });
+        }
+        let mut missing = Vec::new();
+        for (layer, files) in [(ALBEDO, &albedo), (NORMALS, &normals)] {
+            let names: Vec<String> = photos
+                .keys()
+                .filter(|s| !files.contains_key(*s))
+                .cloned()
+                .collect();
+            if !names.is_empty() {
+                missing.push((layer.folder, names));
+            }
+        }
+        let mut orphans = Vec::new();
+        for (layer, files) in [(ALBEDO, &albedo), (NORMALS, &normals), (MASKS, &masks)] {
+            let names: Vec<String> = files
+                .keys()
+                .filter(|s| !photos.contains_key(*s))
+                .cloned()
+                .collect();
+            if !names.is_empty() {
+                orphans.push((layer.folder, names));
+            }
+        }
+        if !missing.is_empty() || !orphans.is_empty() {
+            return Err(FolderError::Unmatched {
+                root: root.to_path_buf(),
+                missing,
+                orphans,
+            });
+        }
+        if !ignored.is_empty() {
+            let names: Vec<String> = ignored
+                .iter()
+                .map(|p| p.strip_prefix(root).unwrap_or(p).display().to_string())
+                .collect();
+            tracing::warn!(
+                "{}: ignoring {} file(s) outside the folder dataset layout: {}",
+                root.display(),
+                ignored.len(),
+                name_list(&names)
+            );
+        }
+
+        let poses_path = root.join(POSES_FILE);
+        let poses = if poses_path.exists() {
+            Some(read_poses(&poses_path, &photos)?)
+        } else {
+            None
+        };
+        let entries = photos
+            .into_iter()
+            .map(|(stem, photo)| SampleFiles {
+                albedo: albedo[&stem].clone(),
+                normals: normals[&stem].clone(),
+                mask: masks.get(&stem).cloned(),
+                pose: poses.as_ref().map_or((0.0, 0.0), |p| p[&stem]),
+                stem,
+                photo,
+            })
+            .collect();
+        Ok(FolderDataset {
+            root: root.to_path_buf(),
+            entries,
+            ignored,
+        })
+    }
+
+    /// The dataset's root folder.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// The number of samples (at least 1: [`FolderDataset::open`] rejects an empty dataset).
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Always false: [`FolderDataset::open`] rejects an empty dataset.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// The samples' names (file stems), sorted.
+    pub fn stems(&self) -> impl ExactSizeIterator<Item = &str> + '_ {
+        self.entries.iter().map(|e| e.stem.as_str())
+    }
+
+    /// Camera pose `(yaw, pitch)` of sample `i`, radians. Panics if `i >= len()`.
+    pub fn pose(&self, i: usize) -> (f64, f64) {
+        self.entries[i].pose
+    }
+
+    /// Files in the layout's folders that are not part of it (unknown extensions, folders),
+    /// sorted per folder; hidden files are not listed.
+    pub fn ignored(&self) -> &[PathBuf] {
+        &self.ignored
+    }
+
+    /// Decodes sample `i` (module docs: what happens to masks and normals). Panics if
+    /// `i >= len()`.
+    pub fn load(&self, i: usize) -> Result<FolderSample, FolderError> {
+        let entry = &self.entries[i];
+        let photo = io::read_encoded(&entry.photo)?;
+        let (width, height) = (photo.width, photo.height);
+        let check_size = |layer: &'static str, path: &Path, raw: &RawImage| {
+            if (raw.width, raw.height) == (width, height) {
+                Ok(())
+            } else {
+                Err(FolderError::SizeMismatch {
+                    stem: entry.stem.clone(),
+                    layer,
+                    path: path.to_path_buf(),
+                    size: (raw.width, raw.height),
+                    photo: (width, height),
+                })
+            }
+        };
+
+        let raw = io::read_raw(&entry.albedo)?;
+        check_size("albedo", &entry.albedo, &raw)?;
+        check_finite(&entry.albedo, &raw)?;
+        let mut clamped = 0;
+        let albedo: Vec<Rgb> = raw
+            .texels
+            .into_iter()
+            .map(|c| {
+                let inside = c.map(|v| v.clamp(0.0, 1.0));
+                clamped += usize::from(inside != c);
+                inside
+            })
+            .collect();
+        if clamped > 0 {
+            tracing::warn!(
+                "{}: {clamped} pixel(s) outside [0, 1] clamped",
+                entry.albedo.display()
+            );
+        }
+
+        let mut normals: Vec<[f32; 3]> = if Format::of(&entry.normals)? == Format::Exr {
+            let raw = io::read_raw(&entry.normals)?;
+            check_size("normals", &entry.normals, &raw)?;
+            check_finite(&entry.normals, &raw)?;
+            raw.texels
+        } else {
+            let raw = io::read_encoded(&entry.normals)?;
+            check_size("normals", &entry.normals, &raw)?;
+            raw.texels
+                .into_iter()
+                .map(|c| c.map(|v| 2.0 * v - 1.0))
+                .collect()
+        };
+
+        let mask: Vec<f32> = match &entry.mask {
+            Some(path) => {
+                let raw = io::read_encoded(path)?;
+                check_size("mask", path, &raw)?;
+                raw.texels.into_iter().map(|c| c[0]).collect()
+            }
+            None => normals
+                .iter()
+                .map(|n| f32::from(u8::from(length(*n) > MASK_FROM_NORMAL_LENGTH)))
+                .collect(),
+        };
+
+        let (mut renormalised, mut degenerate) = (0, 0);
+        for (n, &m) in normals.iter_mut().zip(&mask) {
+            let len = length(*n);
+            if m <= 0.0 {
+                *n = [0.0; 3];
+            } else if len < DEGENERATE_LENGTH {
+                degenerate += 1;
+                *n = [0.0, 0.0, 1.0];
+            } else {
+                renormalised += usize::from((len - 1.0).abs() > UNIT_TOLERANCE);
+                *n = n.map(|v| v / len);
+            }
+        }
+
+        Ok(FolderSample {
+            stem: entry.stem.clone(),
+            photo: photo.texels,
+            image: IntrinsicImage {
+                width,
+                height,
+                albedo,
+                normals,
+                mask,
+                pose: entry.pose,
+            },
+            renormalised,
+            degenerate,
+        })
+    }
+}
+
+/// Whether `path` is a folder: false if nothing is there, an error if a file is.
+fn is_folder(path: &Path) -> Result<bool, FolderError> {
+    match fs::metadata(path) {
+        Ok(m) if m.is_dir() => Ok(true),
+        Ok(_) => Err(FolderError::NotAFolder {
+            path: path.to_path_buf(),
+        }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+        Err(source) => Err(FolderError::Io {
+            path: path.to_path_buf(),
+            source,
+        }),
+    }
+}
+
+fn length(n: [f32; 3]) -> f32 {
+    n.iter().map(|v| v * v).sum::<f32>().sqrt()
+}
+
+/// Lists `root/layer.folder`: accepted files by stem; duplicates and ignored files are added
+/// to the caller's lists.
+fn scan(
+    root: &Path,
+    layer: Layer,
+    duplicates: &mut Vec<(PathBuf, PathBuf)>,
+    ignored: &mut Vec<PathBuf>,
+) -> Result<BTreeMap<String, PathBuf>, FolderError> {
+    let dir = root.join(layer.folder);
+    let io_err = |source| FolderError::Io {
+        path: dir.clone(),
+        source,
+    };
+    let mut paths = Vec::new();
+    for entry in fs::read_dir(&dir).map_err(io_err)? {
+        paths.push(entry.map_err(io_err)?.path());
+    }
+    paths.sort();
+    let mut files = BTreeMap::new();
+    for path in paths {
+        let hidden = path
+            .file_name()
+            .is_none_or(|n| n.as_encoded_bytes().starts_with(b"."));
+        if hidden {
+            continue;
+        }
+        match accepted_stem(&path, layer) {
+            Some(stem) => match files.entry(stem) {
+                Entry::Vacant(slot) => {
+                    slot.insert(path);
+                }
+                Entry::Occupied(first) => duplicates.push((first.get().clone(), path)),
+            },
+            None => ignored.push(path),
+        }
+    }
+    Ok(files)
+}
+
+/// The stem of `path` if it is a file with one of `layer`'s extensions (any case).
+fn accepted_stem(path: &Path, layer: Layer) -> Option<String> {
+    let ext = path.extension()?.to_str()?.to_ascii_lowercase();
+    if !layer.extensions.contains(&ext.as_str()) || !path.is_file() {
+        return None;
+    }
+    Some(path.file_stem()?.to_str()?.to_owned())
+}
+
+/// The first non-finite pixel of an EXR layer, as an error.
+fn check_finite(path: &Path, raw: &RawImage) -> Result<(), FolderError> {
+    let mut bad = raw
+        .texels
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| c.iter().any(|v| !v.is_finite()));
+    match bad.next() {
+        None => Ok(()),
+        Some((i, _)) => Err(FolderError::NonFinite {
+            path: path.to_path_buf(),
+            count: 1 + bad.count(),
+            x: i % raw.width,
+            y: i / raw.width,
+        }),
+    }
+}
+
+/// Reads `poses.csv`: one row per photo in `photos`.
+fn read_poses(
+    path: &Path,
+    photos: &BTreeMap<String, PathBuf>,
+) -> Result<BTreeMap<String, (f64, f64)>, FolderError> {
+    let text = fs::read_to_string(path).map_err(|source| FolderError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty());
+    let (header_line, header) = lines.next().unwrap_or((1, ""));
+    let fields: Vec<String> = header
+        .split(',')
+        .map(|f| f.trim().to_ascii_lowercase())
+        .collect();
+    if fields != ["name", "yaw", "pitch"] {
+        return Err(FolderError::PosesHeader {
+            path: path.to_path_buf(),
+            line: header_line,
+            found: header.to_owned(),
+        });
+    }
+    let mut poses = BTreeMap::new();
+    let mut lines_of = BTreeMap::new();
+    for (line, row) in lines {
+        let fields: Vec<&str> = row.split(',').map(str::trim).collect();
+        let [stem, yaw, pitch] = fields[..] else {
+            return Err(FolderError::PoseFields {
+                path: path.to_path_buf(),
+                line,
+                found: fields.len(),
+            });
+        };
+        if !photos.contains_key(stem) {
+            return Err(FolderError::PoseUnknownName {
+                path: path.to_path_buf(),
+                line,
+                stem: stem.to_owned(),
+            });
+        }
+        if let Some(&first) = lines_of.get(stem) {
+            return Err(FolderError::PoseDuplicate {
+                path: path.to_path_buf(),
+                line,
+                first,
+                stem: stem.to_owned(),
+            });
+        }
+        let value = |column: &'static str, text: &str| {
+            let error = |reason| FolderError::PoseValue {
+                path: path.to_path_buf(),
+                line,
+                column,
+                value: text.to_owned(),
+                reason,
+            };
+            let v: f64 = text.parse().map_err(|_| error("is not a number"))?;
+            if v.is_finite() {
+                Ok(v)
+            } else {
+                Err(error("is not finite"))
+            }
+        };
+        let yaw = value("yaw", yaw)?;
+        let pitch_value = value("pitch", pitch)?;
+        if pitch_value.abs() >= std::f64::consts::FRAC_PI_2 {
+            return Err(FolderError::PoseValue {
+                path: path.to_path_buf(),
+                line,
+                column: "pitch",
+                value: pitch.to_owned(),
+                reason: "must be strictly between -pi/2 and pi/2 radians",
+            });
+        }
+        lines_of.insert(stem.to_owned(), line);
+        poses.insert(stem.to_owned(), (yaw, pitch_value));
+    }
+    let stems: Vec<String> = photos
+        .keys()
+        .filter(|s| !poses.contains_key(*s))
+        .cloned()
+        .collect();
+    if !stems.is_empty() {
+        return Err(FolderError::PosesMissing {
+            path: path.to_path_buf(),
+            stems,
+        });
+    }
+    Ok(poses)
+}
+
+/// Writes `samples` as a folder dataset at `root`, which must be new or empty: photos and
+/// masks as 8-bit PNG, albedo and normals as f32 OpenEXR (lossless), and `poses.csv` with
+/// every pose (written exactly). Every file is written atomically (a temporary name, then a
+/// rename). All samples are checked before anything is written.
+pub fn write_dataset(root: &Path, samples: &[FolderSample]) -> Result<(), FolderError> {
+    if samples.is_empty() {
+        return Err(FolderError::NothingToWrite {
+            root: root.to_path_buf(),
+        });
+    }
+    let mut seen = BTreeSet::new();
+    for sample in samples {
+        check_sample(sample)?;
+        if !seen.insert(sample.stem.as_str()) {
+            return Err(FolderError::InvalidSample {
+                stem: sample.stem.clone(),
+                reason: "two samples have this name".into(),
+            });
+        }
+    }
+    let io_err = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| FolderError::Io { path, source }
+    };
+    if root.exists() {
+        if !root.is_dir() {
+            return Err(FolderError::NotAFolder {
+                path: root.to_path_buf(),
+            });
+        }
+        if fs::read_dir(root).map_err(io_err(root))?.next().is_some() {
+            return Err(FolderError::NotEmpty {
+                path: root.to_path_buf(),
+            });
+        }
+    }
+    for layer in [PHOTOS, ALBEDO, NORMALS, MASKS] {
+        let dir = root.join(layer.folder);
+        fs::create_dir_all(&dir).map_err(io_err(&dir))?;
+    }
+    let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+    let mut csv = String::from("name,yaw,pitch\n");
+    for s in samples {
+        let (w, h, stem) = (s.image.width, s.image.height, &s.stem);
+        let photo: Vec<[u8; 3]> = s.photo.iter().map(|c| c.map(to_u8)).collect();
+        io::save_png(&root.join(format!("photos/{stem}.png")), w, h, &photo)?;
+        io::save_exr(
+            &root.join(format!("albedo/{stem}.exr")),
+            w,
+            h,
+            &s.image.albedo,
+        )?;
+        io::save_exr(
+            &root.join(format!("normals/{stem}.exr")),
+            w,
+            h,
+            &s.image.normals,
+        )?;
+        let mask: Vec<[u8; 3]> = s.image.mask.iter().map(|&m| [to_u8(m); 3]).collect();
+        io::save_png(&root.join(format!("masks/{stem}.png")), w, h, &mask)?;
+        let (yaw, pitch) = s.image.pose;
+        let _ = writeln!(csv, "{stem},{yaw},{pitch}");
+    }
+    let poses = root.join(POSES_FILE);
+    io::write_atomically(&poses, |tmp| {
+        fs::write(tmp, &csv).map_err(|source| EnvMapError::Io {
+            path: poses.clone(),
+            source,
+        })
+    })?;
+    Ok(())
+}
+
+/// Why [`write_dataset`] cannot write `sample`, if it cannot.
+fn check_sample(sample: &FolderSample) -> Result<(), FolderError> {
+    let stem = &sample.stem;
+    let invalid = |reason: String| FolderError::InvalidSample {
+        stem: stem.clone(),
+        reason,
+    };
+    let bad_char = stem
+        .chars()
+        .find(|c| matches!(c, '/' | '\\' | ',' | '"') || c.is_control());
+    if stem.is_empty() || stem.starts_with('.') || stem.trim() != stem || bad_char.is_some() {
+        return Err(invalid(
+            "a name must be non-empty, not start with '.' or a space, and hold no '/', '\\', \
+             ',', '\"' or control character"
+                .into(),
+        ));
+    }
+    let image = &sample.image;
+    let pixels = image.width * image.height;
+    if sample.photo.len() != pixels {
+        return Err(invalid(format!(
+            "photo has {} pixels, the image is {}x{}",
+            sample.photo.len(),
+            image.width,
+            image.height
+        )));
+    }
+    if pixels == 0 {
+        return Err(invalid("the image is empty".into()));
+    }
+    if let Some(i) = sample
+        .photo
+        .iter()
+        .position(|c| c.iter().any(|v| !v.is_finite()))
+    {
+        return Err(invalid(format!(
+            "photo has a non-finite value at pixel ({}, {})",
+            i % image.width,
+            i / image.width
+        )));
+    }
+    image.validate().map_err(|e| invalid(e.to_string()))?;
+    let (yaw, pitch) = image.pose;
+    if !yaw.is_finite() || !pitch.is_finite() || pitch.abs() >= std::f64::consts::FRAC_PI_2 {
+        return Err(invalid(format!(
+            "pose ({yaw}, {pitch}) must be finite with pitch strictly between -pi/2 and pi/2"
+        )));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests;
