@@ -1,0 +1,528 @@
+//! A training dataset: a source of intrinsic images (the built-in synthetic heads or a folder
+//! dataset), a bank of light maps, and the draws that light each example, as a pure function
+//! of the example's index.
+//!
+//! Example `i` of a dataset with seed `s` uses its own random stream (SplitMix64 of a hash of
+//! `s` and `i`): which head or image, which pose (synthetic heads), which environment and
+//! rotation. So batches can be made in any order, on any number of threads, and a resumed run
+//! sees exactly the data of an uninterrupted one.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use rayon::prelude::*;
+use serde::Deserialize;
+use volux_envmap::io::{linear_to_srgb, srgb_to_linear};
+use volux_envmap::report::SplitMix64;
+use volux_envmap::{LightMap, LightMapSet, Rgb};
+
+use crate::batch::Batch;
+use crate::folder_dataset::{FolderDataset, FolderError};
+use crate::pose_distribution::PoseDistribution;
+use crate::relighting::{DEFAULT_SPECULAR_WEIGHTS, IntrinsicImage};
+use crate::synthetic_head::{self, RenderSettings, SyntheticHead};
+use crate::training_sample::{Intrinsics, LightingDraw, SampleError, TrainingSample, make_sample};
+
+/// Where the intrinsic images come from (`[data.source]` in a config, `kind = ...`).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
+pub enum SourceConfig {
+    /// The built-in procedural heads.
+    Synthetic {
+        /// How many distinct heads (seeds `0..identities`); examples draw among them.
+        #[serde(default = "default_identities")]
+        identities: u64,
+        /// Rays per pixel along each axis (2: anti-aliased, 4x the cost).
+        #[serde(default = "one")]
+        supersample: usize,
+        /// Camera pose distribution.
+        #[serde(default)]
+        poses: PoseDistribution,
+    },
+    /// A folder dataset (see [`crate::folder_dataset`] for the layout).
+    Folder {
+        path: PathBuf,
+        /// Specular weights of the lobes 1, 16, 32, 64.
+        #[serde(default = "default_weights")]
+        specular_weights: [f32; 4],
+    },
+}
+
+fn default_identities() -> u64 {
+    10_000
+}
+
+fn one() -> usize {
+    1
+}
+
+fn default_weights() -> [f32; 4] {
+    DEFAULT_SPECULAR_WEIGHTS
+}
+
+impl Default for SourceConfig {
+    fn default() -> Self {
+        SourceConfig::Synthetic {
+            identities: default_identities(),
+            supersample: 1,
+            poses: PoseDistribution::default(),
+        }
+    }
+}
+
+/// The data half of a training config.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DataConfig {
+    /// Seed of every draw (heads, poses, environments, rotations).
+    #[serde(default)]
+    pub seed: u64,
+    /// Background colour, sRGB in `[0, 1]` (the generator composites over the same).
+    #[serde(default)]
+    pub background: [f32; 3],
+    #[serde(default)]
+    pub source: SourceConfig,
+}
+
+/// Why a dataset or an example cannot be made.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    #[error("data config: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Folder(#[from] FolderError),
+    #[error("{stem}: {source}")]
+    Sample { stem: String, source: SampleError },
+    #[error(
+        "folder image {stem} is {width}x{height}: it must be square, {side} pixels or a multiple of it"
+    )]
+    FolderSize {
+        stem: String,
+        width: usize,
+        height: usize,
+        side: usize,
+    },
+}
+
+enum Source {
+    Synthetic {
+        identities: u64,
+        settings: RenderSettings,
+        poses: PoseDistribution,
+    },
+    Folder {
+        dataset: FolderDataset,
+        specular_weights: [f32; 4],
+    },
+}
+
+/// A dataset ready to make examples at one resolution.
+pub struct Dataset {
+    source: Source,
+    lights: Arc<Vec<LightMapSet>>,
+    seed: u64,
+    background: Rgb,
+    side: usize,
+    factor: usize,
+}
+
+impl Dataset {
+    /// Opens the source of `config` (a folder is listed, not decoded) for examples of
+    /// `side x side` pixels with low-resolution layers `factor` times smaller, lit by `lights`
+    /// (each the light maps 1, 16, 32, 64 of one environment).
+    pub fn new(
+        config: &DataConfig,
+        lights: Arc<Vec<LightMapSet>>,
+        side: usize,
+        factor: usize,
+    ) -> Result<Dataset, DataError> {
+        if lights.is_empty() {
+            return Err(DataError::Config("the light-map bank is empty".into()));
+        }
+        if factor == 0 || side == 0 || side % factor != 0 {
+            return Err(DataError::Config(format!(
+                "resolution {side} is not a multiple of the low-resolution factor {factor}"
+            )));
+        }
+        if let Some(k) = config
+            .background
+            .iter()
+            .position(|v| !(0.0..=1.0).contains(v))
+        {
+            return Err(DataError::Config(format!(
+                "background[{k}] = {} must be in [0, 1]",
+                config.background[k]
+            )));
+        }
+        let source = match &config.source {
+            SourceConfig::Synthetic {
+                identities,
+                supersample,
+                poses,
+            } => {
+                if *identities == 0 {
+                    return Err(DataError::Config(
+                        "source.identities must be at least 1".into(),
+                    ));
+                }
+                if !(1..=4).contains(supersample) {
+                    return Err(DataError::Config(format!(
+                        "source.supersample = {supersample} must be 1 to 4"
+                    )));
+                }
+                poses
+                    .validate()
+                    .map_err(|e| DataError::Config(format!("source.poses.{e}")))?;
+                Source::Synthetic {
+                    identities: *identities,
+                    settings: RenderSettings {
+                        supersample: *supersample,
+                        ..RenderSettings::square(side)
+                    },
+                    poses: *poses,
+                }
+            }
+            SourceConfig::Folder {
+                path,
+                specular_weights,
+            } => {
+                if let Some(k) = specular_weights
+                    .iter()
+                    .position(|w| !(w.is_finite() && *w >= 0.0))
+                {
+                    return Err(DataError::Config(format!(
+                        "source.specular_weights[{k}] = {} must be finite and >= 0",
+                        specular_weights[k]
+                    )));
+                }
+                Source::Folder {
+                    dataset: FolderDataset::open(path)?,
+                    specular_weights: *specular_weights,
+                }
+            }
+        };
+        Ok(Dataset {
+            source,
+            lights,
+            seed: config.seed,
+            background: config.background,
+            side,
+            factor,
+        })
+    }
+
+    pub fn side(&self) -> usize {
+        self.side
+    }
+
+    pub fn factor(&self) -> usize {
+        self.factor
+    }
+
+    /// The light-map bank the draws index.
+    pub fn lights(&self) -> &Arc<Vec<LightMapSet>> {
+        &self.lights
+    }
+
+    /// Draws an environment and a rotation.
+    pub fn draw_lighting(&self, rng: &mut SplitMix64) -> LightingDraw {
+        let map = (rng.next_u64() % self.lights.len() as u64) as usize;
+        LightingDraw {
+            map,
+            yaw: std::f64::consts::TAU * rng.next_f64(),
+        }
+    }
+
+    /// Example `index`.
+    pub fn example(&self, index: u64) -> Result<TrainingSample, DataError> {
+        let mut rng = SplitMix64::new(mix(self.seed, index));
+        match &self.source {
+            Source::Synthetic {
+                identities,
+                settings,
+                poses,
+            } => {
+                let identity = rng.next_u64() % identities;
+                let pose = poses.sample(&mut rng);
+                let draw = self.draw_lighting(&mut rng);
+                let head = SyntheticHead::from_seed(identity);
+                let render = synthetic_head::render(&head, pose, settings);
+                let intrinsics = Intrinsics::Synthetic {
+                    head: &head,
+                    render: &render,
+                };
+                make_sample(
+                    intrinsics,
+                    &self.maps(draw),
+                    draw,
+                    self.background,
+                    self.factor,
+                )
+                .map_err(|source| DataError::Sample {
+                    stem: format!("synthetic head {identity}"),
+                    source,
+                })
+            }
+            Source::Folder {
+                dataset,
+                specular_weights,
+            } => {
+                let i = (rng.next_u64() % dataset.len() as u64) as usize;
+                let draw = self.draw_lighting(&mut rng);
+                let loaded = dataset.load(i)?;
+                let (image, photo) =
+                    fit(loaded.image, loaded.photo, self.side).map_err(|(width, height)| {
+                        DataError::FolderSize {
+                            stem: loaded.stem.clone(),
+                            width,
+                            height,
+                            side: self.side,
+                        }
+                    })?;
+                let intrinsics = Intrinsics::Photo {
+                    image: &image,
+                    photo: &photo,
+                    specular_weights,
+                };
+                make_sample(
+                    intrinsics,
+                    &self.maps(draw),
+                    draw,
+                    self.background,
+                    self.factor,
+                )
+                .map_err(|source| DataError::Sample {
+                    stem: loaded.stem,
+                    source,
+                })
+            }
+        }
+    }
+
+    /// Batch `index` of `size` examples (examples `index * size ..`), made in parallel.
+    pub fn batch(&self, index: u64, size: usize) -> Result<Batch, DataError> {
+        let first = index * size as u64;
+        let examples = (first..first + size as u64)
+            .into_par_iter()
+            .map(|i| self.example(i))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Batch::collate(index, &examples))
+    }
+
+    fn maps(&self, draw: LightingDraw) -> Vec<&LightMap> {
+        self.lights[draw.map].maps().iter().collect()
+    }
+}
+
+/// A seed for example `index` of a stream seeded `seed`.
+fn mix(seed: u64, index: u64) -> u64 {
+    let mut rng = SplitMix64::new(seed ^ index.wrapping_mul(0xD1B5_4A32_D192_ED03));
+    rng.next_u64()
+}
+
+/// Brings a folder image to `side x side` by area averaging (its side must be a multiple):
+/// albedo and photo averaged in linear light, normals averaged and renormalised, mask averaged.
+fn fit(
+    image: IntrinsicImage,
+    photo: Vec<Rgb>,
+    side: usize,
+) -> Result<(IntrinsicImage, Vec<Rgb>), (usize, usize)> {
+    let (w, h) = (image.width, image.height);
+    if w != h || w % side != 0 {
+        return Err((w, h));
+    }
+    let k = w / side;
+    if k == 1 {
+        return Ok((image, photo));
+    }
+    let average = |layer: &[[f32; 3]]| crate::training_sample::area_downsample(layer, w, k);
+    let linear: Vec<Rgb> = photo.iter().map(|c| c.map(srgb_to_linear)).collect();
+    let photo = average(&linear)
+        .into_iter()
+        .map(|c| c.map(linear_to_srgb))
+        .collect();
+    let mask_rgb: Vec<[f32; 3]> = image.mask.iter().map(|&m| [m; 3]).collect();
+    let mask = average(&mask_rgb)
+        .into_iter()
+        .map(|m| m[0])
+        .collect::<Vec<f32>>();
+    let normals = average(&image.normals)
+        .into_iter()
+        .zip(&mask)
+        .map(|(n, &m)| {
+            let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            if m > 0.0 && len > 1e-6 {
+                n.map(|c| c / len)
+            } else {
+                [0.0; 3]
+            }
+        })
+        .collect();
+    Ok((
+        IntrinsicImage {
+            width: side,
+            height: side,
+            albedo: average(&image.albedo),
+            normals,
+            mask,
+            pose: image.pose,
+        },
+        photo,
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
+
+    fn bank() -> Arc<Vec<LightMapSet>> {
+        let maps = [
+            EnvMap::constant(16, [1.0; 3]).unwrap(),
+            crate::procedural_sky::overcast(32, 2.0).unwrap(),
+        ];
+        Arc::new(
+            maps.iter()
+                .map(|m| preconvolve(m, &PreconvolveOptions::default()).unwrap())
+                .collect(),
+        )
+    }
+
+    #[test]
+    fn configs_parse_with_defaults_and_reject_unknown_keys() {
+        let config: DataConfig =
+            toml::from_str("seed = 3\n[source]\nkind = \"synthetic\"\nidentities = 50\n").unwrap();
+        assert_eq!(config.seed, 3);
+        assert!(matches!(
+            config.source,
+            SourceConfig::Synthetic {
+                identities: 50,
+                supersample: 1,
+                ..
+            }
+        ));
+        let folder: DataConfig =
+            toml::from_str("[source]\nkind = \"folder\"\npath = \"faces\"\n").unwrap();
+        assert!(
+            matches!(folder.source, SourceConfig::Folder { specular_weights, .. } if specular_weights == DEFAULT_SPECULAR_WEIGHTS)
+        );
+        let err = toml::from_str::<DataConfig>("[source]\nkind = \"synthetic\"\nidentitys = 5\n")
+            .unwrap_err();
+        assert!(err.to_string().contains("identitys"), "{err}");
+        let err = toml::from_str::<DataConfig>("sed = 1\n").unwrap_err();
+        assert!(err.to_string().contains("sed"), "{err}");
+        let err = toml::from_str::<DataConfig>("[source]\nkind = \"video\"\n").unwrap_err();
+        assert!(err.to_string().contains("video"), "{err}");
+    }
+
+    #[test]
+    fn impossible_values_are_errors_naming_the_key() {
+        let lights = bank();
+        let bad = |toml_text: &str, side: usize, factor: usize| {
+            let config: DataConfig = toml::from_str(toml_text).unwrap();
+            Dataset::new(&config, lights.clone(), side, factor)
+                .err()
+                .unwrap()
+                .to_string()
+        };
+        assert!(bad("", 30, 4).contains("multiple of the low-resolution factor 4"));
+        assert!(bad("background = [0.0, 2.0, 0.0]", 32, 2).contains("background[1]"));
+        assert!(
+            bad("[source]\nkind = \"synthetic\"\nidentities = 0", 32, 2).contains("identities")
+        );
+        assert!(
+            bad("[source]\nkind = \"synthetic\"\nsupersample = 9", 32, 2).contains("supersample")
+        );
+        assert!(
+            bad(
+                "[source]\nkind = \"synthetic\"\n[source.poses]\nyaw_sd = -1.0",
+                32,
+                2
+            )
+            .contains("source.poses.yaw_sd")
+        );
+        assert!(
+            bad(
+                "[source]\nkind = \"folder\"\npath = \"no/such/folder\"",
+                32,
+                2
+            )
+            .contains("no/such/folder")
+        );
+        let config = DataConfig {
+            seed: 0,
+            background: [0.0; 3],
+            source: SourceConfig::default(),
+        };
+        assert!(Dataset::new(&config, Arc::new(Vec::new()), 32, 2).is_err());
+    }
+
+    #[test]
+    fn examples_are_a_pure_function_of_their_index() {
+        let config: DataConfig =
+            toml::from_str("seed = 9\n[source]\nkind = \"synthetic\"\nidentities = 4\n").unwrap();
+        let data = Dataset::new(&config, bank(), 16, 2).unwrap();
+        let batch = data.batch(2, 3).unwrap();
+        assert_eq!(
+            (batch.size, batch.side, batch.side_lo, batch.index),
+            (3, 16, 8, 2)
+        );
+        // Batch 2 of size 3 is examples 6, 7, 8, whichever way it is made.
+        let alone = Batch::collate(
+            2,
+            &[
+                data.example(6).unwrap(),
+                data.example(7).unwrap(),
+                data.example(8).unwrap(),
+            ],
+        );
+        assert_eq!(batch, alone);
+        let other = Dataset::new(
+            &DataConfig {
+                seed: 10,
+                ..config.clone()
+            },
+            bank(),
+            16,
+            2,
+        )
+        .unwrap();
+        assert_ne!(
+            other.example(6).unwrap().photo,
+            data.example(6).unwrap().photo
+        );
+        // Draws cover the bank and the full turn.
+        let draws: Vec<LightingDraw> = (0..64).map(|i| data.example(i).unwrap().draw).collect();
+        assert!(draws.iter().any(|d| d.map == 0) && draws.iter().any(|d| d.map == 1));
+        assert!(
+            draws
+                .iter()
+                .all(|d| (0.0..std::f64::consts::TAU).contains(&d.yaw))
+        );
+        assert!(draws.iter().any(|d| d.yaw > 5.0) && draws.iter().any(|d| d.yaw < 1.0));
+    }
+
+    #[test]
+    fn folder_images_are_averaged_down_to_the_training_size() {
+        // A 4x4 image brought to 2x2: each output pixel averages a 2x2 block.
+        let n = 16;
+        let image = IntrinsicImage {
+            width: 4,
+            height: 4,
+            albedo: (0..n).map(|i| [i as f32 / 16.0; 3]).collect(),
+            normals: vec![[0.6, 0.0, 0.8]; n],
+            mask: (0..n).map(|i| if i % 4 < 2 { 1.0 } else { 0.0 }).collect(),
+            pose: (0.1, 0.0),
+        };
+        let photo = vec![[0.5; 3]; n];
+        let (small, small_photo) = fit(image.clone(), photo.clone(), 2).unwrap();
+        assert_eq!((small.width, small.albedo.len()), (2, 4));
+        assert!((small.albedo[0][0] - (0.0 + 1.0 + 4.0 + 5.0) / 64.0).abs() < 1e-7);
+        assert_eq!(small.mask, vec![1.0, 0.0, 1.0, 0.0]);
+        assert_eq!(small.normals[0], [0.6, 0.0, 0.8]);
+        assert_eq!(small.normals[1], [0.0; 3]);
+        assert!((small_photo[0][0] - 0.5).abs() < 1e-6);
+        assert_eq!(fit(image.clone(), photo.clone(), 3).unwrap_err(), (4, 4));
+        assert_eq!(fit(image, photo, 4).unwrap().0.width, 4);
+    }
+}
