@@ -139,7 +139,7 @@ impl Dataset {
         if lights.is_empty() {
             return Err(DataError::Config("the light-map bank is empty".into()));
         }
-        if factor == 0 || side == 0 || side % factor != 0 {
+        if factor == 0 || side == 0 || !side.is_multiple_of(factor) {
             return Err(DataError::Config(format!(
                 "resolution {side} is not a multiple of the low-resolution factor {factor}"
             )));
