@@ -15,6 +15,7 @@
 pub mod batch;
 pub mod contact_sheet;
 pub mod dataset;
+pub mod example_cache;
 pub mod folder_dataset;
 pub mod pose_distribution;
 pub mod procedural_sky;

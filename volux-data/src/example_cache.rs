@@ -1,0 +1,558 @@
+//! An on-disk cache of training examples (`volux data build`): examples `0..n` of a
+//! [`Dataset`], in shards of a fixed number of examples, with a manifest.
+//!
+//! - A shard is one file: a header (magic, version, sizes, count) and the examples' layers as
+//!   little-endian f32, so example `i` is read with one seek.
+//! - `manifest.toml` records the dataset's fingerprint (a hash of everything examples depend
+//!   on: the data config, the light maps' keys, the sizes and the renderer's version), the
+//!   shard size and, per finished shard, its file name and SHA-256.
+//! - A build writes each shard atomically (temporary name, then rename) and rewrites the
+//!   manifest after each shard, so an interrupted build resumes: finished shards whose file
+//!   still has its hash are kept, the rest are made. A changed fingerprint or shard size makes
+//!   every shard stale; a larger example count only adds shards. Stale files are removed.
+
+use std::fs;
+use std::io::{Read, Seek, SeekFrom};
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::batch::Batch;
+use crate::dataset::{DataError, Dataset};
+use crate::training_sample::{LightingDraw, TrainingSample};
+
+/// Bump when the examples a dataset makes change (rendering, relighting, layer conventions), so
+/// that caches built before are rebuilt.
+pub const EXAMPLE_FORMAT_VERSION: u32 = 1;
+
+const MAGIC: &[u8; 8] = b"VOLUXEX1";
+const HEADER_BYTES: usize = 8 + 4 * 4;
+const MANIFEST: &str = "manifest.toml";
+
+/// How many examples, in shards of how many.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CacheSpec {
+    pub examples: u64,
+    pub shard_size: usize,
+}
+
+/// The cache's table of contents.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    pub format_version: u32,
+    pub fingerprint: String,
+    pub side: usize,
+    pub factor: usize,
+    pub spec: CacheSpec,
+    /// Finished shards, by index.
+    pub shards: Vec<ShardEntry>,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ShardEntry {
+    pub index: u64,
+    pub file: String,
+    pub examples: usize,
+    pub sha256: String,
+}
+
+/// What a build did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BuildReport {
+    pub shards: usize,
+    pub built: usize,
+    pub kept: usize,
+    pub examples: u64,
+}
+
+/// Why a cache cannot be built or read.
+#[derive(Debug, thiserror::Error)]
+pub enum CacheError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Corrupt { path: PathBuf, message: String },
+    #[error("cache spec: {0}")]
+    Spec(String),
+    #[error("example {index} is outside the cache's {len} examples")]
+    OutOfRange { index: u64, len: u64 },
+    #[error(transparent)]
+    Data(#[from] DataError),
+}
+
+fn io_error(path: &Path) -> impl FnOnce(std::io::Error) -> CacheError + '_ {
+    move |source| CacheError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// The fingerprint of everything a dataset's examples depend on, as hex SHA-256.
+pub fn fingerprint(parts: &[&[u8]]) -> String {
+    let mut hash = Sha256::new();
+    hash.update(EXAMPLE_FORMAT_VERSION.to_le_bytes());
+    for part in parts {
+        // Length-prefixed, so that parts cannot run into each other.
+        hash.update((part.len() as u64).to_le_bytes());
+        hash.update(part);
+    }
+    hex(&hash.finalize())
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn shard_name(index: u64) -> String {
+    format!("shard-{index:05}.bin")
+}
+
+/// Floats per example at `side` and `side / factor`.
+fn example_floats(side: usize, factor: usize) -> usize {
+    let (hi, lo) = (side * side, (side / factor) * (side / factor));
+    // pose (2), draw (2), photo, relit, albedo hi, diffuse, specular (3 hi each), mask (hi),
+    // albedo lo, normals lo (3 lo each).
+    4 + 15 * hi + hi + 6 * lo
+}
+
+fn encode_example(out: &mut Vec<u8>, s: &TrainingSample) {
+    let mut put = |v: f32| out.extend_from_slice(&v.to_le_bytes());
+    put(s.pose.0 as f32);
+    put(s.pose.1 as f32);
+    put(s.draw.map as f32);
+    put(s.draw.yaw as f32);
+    for layer in [&s.photo, &s.relit, &s.albedo_hi, &s.diffuse, &s.specular] {
+        layer.iter().flatten().for_each(|&v| put(v));
+    }
+    s.mask.iter().for_each(|&v| put(v));
+    for layer in [&s.albedo_lo, &s.normals_lo] {
+        layer.iter().flatten().for_each(|&v| put(v));
+    }
+}
+
+fn decode_example(bytes: &[u8], side: usize, factor: usize) -> TrainingSample {
+    let floats: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect();
+    let (hi, lo) = (side * side, (side / factor) * (side / factor));
+    let pose = (f64::from(floats[0]), f64::from(floats[1]));
+    let draw = LightingDraw {
+        map: floats[2] as usize,
+        yaw: f64::from(floats[3]),
+    };
+    let mut at = 4;
+    let mut take = |n: usize| {
+        let part = &floats[at..at + n];
+        at += n;
+        part
+    };
+    let rgb = |part: &[f32]| -> Vec<[f32; 3]> {
+        part.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+    };
+    let photo = rgb(take(3 * hi));
+    let relit = rgb(take(3 * hi));
+    let albedo_hi = rgb(take(3 * hi));
+    let diffuse = rgb(take(3 * hi));
+    let specular = rgb(take(3 * hi));
+    let mask = take(hi).to_vec();
+    let albedo_lo = rgb(take(3 * lo));
+    let normals_lo = rgb(take(3 * lo));
+    TrainingSample {
+        side,
+        factor,
+        pose,
+        draw,
+        photo,
+        relit,
+        albedo_hi,
+        albedo_lo,
+        normals_lo,
+        mask,
+        diffuse,
+        specular,
+    }
+}
+
+fn read_manifest(dir: &Path) -> Result<Option<Manifest>, CacheError> {
+    let path = dir.join(MANIFEST);
+    match fs::read_to_string(&path) {
+        Ok(text) => toml::from_str(&text)
+            .map(Some)
+            .map_err(|e| CacheError::Corrupt {
+                path,
+                message: e.to_string(),
+            }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(io_error(&path)(e)),
+    }
+}
+
+/// Writes `bytes` to `path` through a temporary file and a rename.
+fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), CacheError> {
+    let tmp = path.with_extension("partial");
+    fs::write(&tmp, bytes).map_err(io_error(&tmp))?;
+    fs::rename(&tmp, path).map_err(io_error(path))
+}
+
+fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), CacheError> {
+    let text = toml::to_string(manifest).expect("the manifest serialises");
+    write_atomically(&dir.join(MANIFEST), text.as_bytes())
+}
+
+fn file_sha256(path: &Path) -> Result<String, CacheError> {
+    let bytes = fs::read(path).map_err(io_error(path))?;
+    Ok(hex(&Sha256::digest(&bytes)))
+}
+
+/// Builds (or completes) the cache of `spec.examples` examples of `dataset` in `dir`;
+/// `fingerprint` identifies what the examples depend on (see [`fingerprint`]).
+/// `progress(done, total)` is called after each shard, with shards kept counted as done.
+pub fn build(
+    dir: &Path,
+    dataset: &Dataset,
+    fingerprint: &str,
+    spec: CacheSpec,
+    progress: &dyn Fn(usize, usize),
+) -> Result<BuildReport, CacheError> {
+    if spec.examples == 0 || spec.shard_size == 0 {
+        return Err(CacheError::Spec(format!(
+            "examples = {} and shard_size = {} must be at least 1",
+            spec.examples, spec.shard_size
+        )));
+    }
+    fs::create_dir_all(dir).map_err(io_error(dir))?;
+    let (side, factor) = (dataset.side(), dataset.factor());
+    let shards = spec.examples.div_ceil(spec.shard_size as u64);
+    let size_of =
+        |s: u64| (spec.examples - s * spec.shard_size as u64).min(spec.shard_size as u64) as usize;
+    // Keep what an earlier build with the same fingerprint and shard size finished, if the
+    // file is still intact and holds as many examples as the shard should now.
+    let mut manifest = Manifest {
+        format_version: EXAMPLE_FORMAT_VERSION,
+        fingerprint: fingerprint.to_string(),
+        side,
+        factor,
+        spec,
+        shards: Vec::new(),
+    };
+    if let Some(old) = read_manifest(dir)? {
+        let compatible = old.format_version == EXAMPLE_FORMAT_VERSION
+            && old.fingerprint == fingerprint
+            && (old.side, old.factor) == (side, factor)
+            && old.spec.shard_size == spec.shard_size;
+        for entry in old.shards {
+            let path = dir.join(&entry.file);
+            let intact = compatible
+                && entry.index < shards
+                && entry.examples == size_of(entry.index)
+                && file_sha256(&path).is_ok_and(|h| h == entry.sha256);
+            if intact {
+                manifest.shards.push(entry);
+            } else {
+                tracing::info!("{}: stale, rebuilding", path.display());
+                let _ = fs::remove_file(&path);
+            }
+        }
+    }
+    let kept = manifest.shards.len();
+    let floats = example_floats(side, factor);
+    let mut built = 0;
+    for s in 0..shards {
+        if manifest.shards.iter().any(|e| e.index == s) {
+            continue;
+        }
+        let n = size_of(s);
+        let first = s * spec.shard_size as u64;
+        let examples = (first..first + n as u64)
+            .into_par_iter()
+            .map(|i| dataset.example(i))
+            .collect::<Result<Vec<_>, _>>()?;
+        let mut bytes = Vec::with_capacity(HEADER_BYTES + n * floats * 4);
+        bytes.extend_from_slice(MAGIC);
+        for v in [EXAMPLE_FORMAT_VERSION, side as u32, factor as u32, n as u32] {
+            bytes.extend_from_slice(&v.to_le_bytes());
+        }
+        for e in &examples {
+            encode_example(&mut bytes, e);
+        }
+        let file = shard_name(s);
+        write_atomically(&dir.join(&file), &bytes)?;
+        manifest.shards.push(ShardEntry {
+            index: s,
+            file,
+            examples: n,
+            sha256: hex(&Sha256::digest(&bytes)),
+        });
+        manifest.shards.sort_by_key(|e| e.index);
+        write_manifest(dir, &manifest)?;
+        built += 1;
+        progress(manifest.shards.len(), shards as usize);
+    }
+    write_manifest(dir, &manifest)?;
+    Ok(BuildReport {
+        shards: shards as usize,
+        built,
+        kept,
+        examples: spec.examples,
+    })
+}
+
+/// A finished cache, read example by example.
+#[derive(Clone, Debug)]
+pub struct ExampleCache {
+    dir: PathBuf,
+    manifest: Manifest,
+}
+
+impl ExampleCache {
+    /// Opens the cache in `dir`: the manifest must list every shard (a finished build) and
+    /// every shard file must have the size its examples need.
+    pub fn open(dir: &Path) -> Result<ExampleCache, CacheError> {
+        let manifest = read_manifest(dir)?.ok_or_else(|| CacheError::Corrupt {
+            path: dir.join(MANIFEST),
+            message: "no manifest: build the cache with `volux data build`".into(),
+        })?;
+        let shards = manifest
+            .spec
+            .examples
+            .div_ceil(manifest.spec.shard_size as u64);
+        if manifest.format_version != EXAMPLE_FORMAT_VERSION {
+            return Err(CacheError::Corrupt {
+                path: dir.join(MANIFEST),
+                message: format!(
+                    "format version {} (this build reads {EXAMPLE_FORMAT_VERSION}): rebuild it",
+                    manifest.format_version
+                ),
+            });
+        }
+        if manifest.shards.len() as u64 != shards {
+            return Err(CacheError::Corrupt {
+                path: dir.join(MANIFEST),
+                message: format!(
+                    "{} of {shards} shards finished: run `volux data build` again to complete it",
+                    manifest.shards.len()
+                ),
+            });
+        }
+        let floats = example_floats(manifest.side, manifest.factor);
+        for entry in &manifest.shards {
+            let path = dir.join(&entry.file);
+            let len = fs::metadata(&path).map_err(io_error(&path))?.len() as usize;
+            let want = HEADER_BYTES + entry.examples * floats * 4;
+            if len != want {
+                return Err(CacheError::Corrupt {
+                    path,
+                    message: format!("{len} bytes, expected {want}"),
+                });
+            }
+        }
+        Ok(ExampleCache {
+            dir: dir.to_path_buf(),
+            manifest,
+        })
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    pub fn len(&self) -> u64 {
+        self.manifest.spec.examples
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Example `index` (`< len()`).
+    pub fn example(&self, index: u64) -> Result<TrainingSample, CacheError> {
+        if index >= self.len() {
+            return Err(CacheError::OutOfRange {
+                index,
+                len: self.len(),
+            });
+        }
+        let size = self.manifest.spec.shard_size as u64;
+        let entry = &self.manifest.shards[(index / size) as usize];
+        let path = self.dir.join(&entry.file);
+        let (side, factor) = (self.manifest.side, self.manifest.factor);
+        let bytes_per = example_floats(side, factor) * 4;
+        let mut file = fs::File::open(&path).map_err(io_error(&path))?;
+        let mut header = [0u8; HEADER_BYTES];
+        file.read_exact(&mut header).map_err(io_error(&path))?;
+        if &header[..8] != MAGIC {
+            return Err(CacheError::Corrupt {
+                path,
+                message: "not a volux example shard".into(),
+            });
+        }
+        let offset = HEADER_BYTES + (index % size) as usize * bytes_per;
+        file.seek(SeekFrom::Start(offset as u64))
+            .map_err(io_error(&path))?;
+        let mut bytes = vec![0u8; bytes_per];
+        file.read_exact(&mut bytes).map_err(io_error(&path))?;
+        Ok(decode_example(&bytes, side, factor))
+    }
+
+    /// Batch `index` of `size` examples: examples `index * size ..`, wrapping around the cache.
+    pub fn batch(&self, index: u64, size: usize) -> Result<Batch, CacheError> {
+        let first = index * size as u64;
+        let examples = (first..first + size as u64)
+            .into_par_iter()
+            .map(|i| self.example(i % self.len()))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Batch::collate(index, &examples))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dataset::DataConfig;
+    use std::cell::Cell;
+    use std::sync::Arc;
+    use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
+
+    fn dataset(seed: u64) -> Dataset {
+        let lights = Arc::new(vec![
+            preconvolve(
+                &EnvMap::constant(16, [0.8; 3]).unwrap(),
+                &PreconvolveOptions::default(),
+            )
+            .unwrap(),
+        ]);
+        let config: DataConfig = toml::from_str(&format!("seed = {seed}")).unwrap();
+        Dataset::new(&config, lights, 8, 2).unwrap()
+    }
+
+    #[test]
+    fn a_built_cache_returns_the_datasets_examples() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dataset(1);
+        let spec = CacheSpec {
+            examples: 5,
+            shard_size: 2,
+        };
+        let calls = Cell::new(0);
+        let report = build(dir.path(), &data, "fp", spec, &|_, total| {
+            assert_eq!(total, 3);
+            calls.set(calls.get() + 1);
+        })
+        .unwrap();
+        assert_eq!((report.shards, report.built, report.kept), (3, 3, 0));
+        assert_eq!(calls.get(), 3);
+        let cache = ExampleCache::open(dir.path()).unwrap();
+        for i in 0..5 {
+            let (cached, live) = (cache.example(i).unwrap(), data.example(i).unwrap());
+            // Poses and yaws are stored as f32.
+            assert!((cached.pose.0 - live.pose.0).abs() < 1e-6);
+            assert!((cached.draw.yaw - live.draw.yaw).abs() < 1e-6);
+            assert_eq!(cached.draw.map, live.draw.map);
+            assert_eq!(
+                (cached.photo, cached.normals_lo),
+                (live.photo, live.normals_lo)
+            );
+            assert_eq!((cached.diffuse, cached.mask), (live.diffuse, live.mask));
+        }
+        assert!(matches!(
+            cache.example(5),
+            Err(CacheError::OutOfRange { index: 5, len: 5 })
+        ));
+        // Batches wrap around: batch 2 of 2 is examples 4, 0.
+        let batch = cache.batch(2, 2).unwrap();
+        let want = [cache.example(4).unwrap(), cache.example(0).unwrap()];
+        assert_eq!(batch, Batch::collate(2, &want));
+    }
+
+    #[test]
+    fn reruns_redo_only_what_changed_and_interrupted_builds_resume() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dataset(1);
+        let spec = |examples| CacheSpec {
+            examples,
+            shard_size: 2,
+        };
+        let quiet = &|_: usize, _: usize| {};
+        build(dir.path(), &data, "fp", spec(4), quiet).unwrap();
+        // The same again: nothing to do.
+        let again = build(dir.path(), &data, "fp", spec(4), quiet).unwrap();
+        assert_eq!((again.built, again.kept), (0, 2));
+        // More examples: only the new shard (and the short last one, if it changed size).
+        let more = build(dir.path(), &data, "fp", spec(6), quiet).unwrap();
+        assert_eq!((more.built, more.kept), (1, 2));
+        // An interrupted build: one shard lost, one corrupted; both are remade.
+        fs::remove_file(dir.path().join(shard_name(0))).unwrap();
+        fs::write(dir.path().join(shard_name(2)), b"garbage").unwrap();
+        assert!(ExampleCache::open(dir.path()).is_err());
+        let resumed = build(dir.path(), &data, "fp", spec(6), quiet).unwrap();
+        assert_eq!((resumed.built, resumed.kept), (2, 1));
+        let cache = ExampleCache::open(dir.path()).unwrap();
+        assert_eq!(
+            cache.example(4).unwrap().photo,
+            data.example(4).unwrap().photo
+        );
+        // A different dataset (fingerprint): everything is rebuilt.
+        let other = dataset(2);
+        let changed = build(dir.path(), &other, "fp2", spec(6), quiet).unwrap();
+        assert_eq!((changed.built, changed.kept), (3, 0));
+        let cache = ExampleCache::open(dir.path()).unwrap();
+        assert_eq!(
+            cache.example(1).unwrap().photo,
+            other.example(1).unwrap().photo
+        );
+        assert!(!dir.path().join("shard-00000.partial").exists());
+    }
+
+    #[test]
+    fn unfinished_or_damaged_caches_are_refused_with_the_reason() {
+        let dir = tempfile::tempdir().unwrap();
+        let err = ExampleCache::open(dir.path()).unwrap_err().to_string();
+        assert!(err.contains("no manifest"), "{err}");
+        let data = dataset(1);
+        build(
+            dir.path(),
+            &data,
+            "fp",
+            CacheSpec {
+                examples: 3,
+                shard_size: 2,
+            },
+            &|_, _| {},
+        )
+        .unwrap();
+        let path = dir.path().join(shard_name(1));
+        let bytes = fs::read(&path).unwrap();
+        fs::write(&path, &bytes[..bytes.len() - 4]).unwrap();
+        let err = ExampleCache::open(dir.path()).unwrap_err().to_string();
+        assert!(
+            err.contains("shard-00001.bin") && err.contains("expected"),
+            "{err}"
+        );
+        fs::write(dir.path().join(MANIFEST), "fingerprint = 3").unwrap();
+        let err = ExampleCache::open(dir.path()).unwrap_err().to_string();
+        assert!(err.contains("manifest.toml"), "{err}");
+        assert!(
+            build(
+                dir.path(),
+                &data,
+                "fp",
+                CacheSpec {
+                    examples: 0,
+                    shard_size: 2
+                },
+                &|_, _| {}
+            )
+            .is_err()
+        );
+        assert_ne!(fingerprint(&[b"a", b"bc"]), fingerprint(&[b"ab", b"c"]));
+    }
+}
