@@ -2,12 +2,24 @@
 //! datasets, HDRI collections and relighting augmentation (pseudo ground truth), batched into
 //! Burn tensors.
 //!
-//! Today: the relighting augmentation ([`relighting`]): diffuse, specular and relit layers of
-//! an image's albedo, normals and mask under light maps at a yaw rotation; procedural
-//! environments for the built-in HDRI collection ([`procedural_sky`]: sun and sky, overcast,
-//! studio area lights); folder datasets ([`folder_dataset`]: a person's own photos with their
-//! albedo, normals, optional masks and poses, checked, decoded and written). The synthetic
-//! heads, HDRI collections, cache and batching follow.
+//! - [`synthetic_head`]: the built-in dataset, procedural relightable heads (seeded
+//!   identities, sphere-traced signed distances, exact normals, a photo with occlusion, soft
+//!   shadows and subsurface softening);
+//! - [`folder_dataset`]: a person's own photos with their albedo, normals, optional masks and
+//!   poses, checked, decoded and written;
+//! - [`relighting`]: diffuse, specular and relit layers of an image's albedo, normals and mask
+//!   under light maps at a yaw rotation (the pseudo ground truth);
+//! - [`procedural_sky`]: procedural environments (sun and sky, overcast, studio area lights);
+//! - [`hdri_collection`]: the environments a dataset draws from (the eight embedded maps,
+//!   seeded procedural ones, folders of `.exr` / `.hdr`), each with a name and a content key;
+//! - [`light_map_cache`]: light maps cached on disk, keyed by content and options;
+//! - [`light_map_bank`]: the light maps of a whole collection in memory, built in parallel
+//!   through the cache;
+//! - [`training_sample`]: one example with every layer the discriminators see, in the
+//!   generator's conventions; [`dataset`]: examples and batches as a pure function of their
+//!   index; [`example_cache`]: examples rendered once into a sharded on-disk cache;
+//!   [`batch`]: batches as Burn tensors and a prefetching loader;
+//! - [`pose_distribution`], [`contact_sheet`]: camera poses, preview grids.
 //!
 //! The dataset camera is the model's (`volux_model::ray_sampling`), so that pseudo ground
 //! truth and generated images share one set of conventions.
@@ -17,6 +29,9 @@ pub mod contact_sheet;
 pub mod dataset;
 pub mod example_cache;
 pub mod folder_dataset;
+pub mod hdri_collection;
+pub mod light_map_bank;
+pub mod light_map_cache;
 pub mod pose_distribution;
 pub mod procedural_sky;
 pub mod relighting;

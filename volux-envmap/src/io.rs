@@ -2,9 +2,11 @@
 //!
 //! Reads OpenEXR (any compression the `exr` crate supports, DWAA/DWAB included), Radiance
 //! `.hdr`, and 8- or 16-bit PNG/JPEG (sRGB-decoded to linear, or kept as stored values by
-//! [`read_encoded`]). Writes OpenEXR (f32, lossless ZIP) and 8-bit PNG (tone-mapped previews,
-//! encoded data). Every write goes to a temporary file beside the target and is renamed into
-//! place, so an interrupted write never leaves a half-written file under the final name.
+//! [`read_encoded`]), from a file or from its bytes in memory ([`load_bytes`], for embedded
+//! assets). Writes OpenEXR (f32, lossless ZIP) and 8-bit PNG (tone-mapped previews, encoded
+//! data). Every write goes to a temporary file beside the
+//! target and is renamed into place, so an interrupted write never leaves a half-written file
+//! under the final name.
 
 use std::fs;
 use std::io::{BufWriter, Write};
@@ -53,14 +55,47 @@ pub struct RawImage {
 /// Reads any supported file into linear RGB without validating it.
 pub fn read_raw(path: &Path) -> Result<RawImage, EnvMapError> {
     match Format::of(path)? {
-        Format::Exr => read_exr(path),
-        Format::Hdr | Format::Ldr => read_with_image(path),
+        Format::Exr => {
+            let bytes = fs::read(path).map_err(|source| EnvMapError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
+            decode_exr(&bytes, path)
+        }
+        Format::Hdr | Format::Ldr => {
+            let reader = image::ImageReader::open(path).map_err(|source| EnvMapError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
+            decode_with_image(reader, path)
+        }
+    }
+}
+
+/// Decodes the bytes of a file into linear RGB without validating them. `path` is where the
+/// bytes came from: its extension picks the decoder and it is named in errors.
+pub fn read_raw_bytes(bytes: &[u8], path: &Path) -> Result<RawImage, EnvMapError> {
+    match Format::of(path)? {
+        Format::Exr => decode_exr(bytes, path),
+        Format::Hdr | Format::Ldr => {
+            decode_with_image(image::ImageReader::new(std::io::Cursor::new(bytes)), path)
+        }
     }
 }
 
 /// Reads and validates an environment map (see [`EnvMap::validated`] for the rules).
 pub fn load(path: &Path) -> Result<EnvMap, EnvMapError> {
-    let raw = read_raw(path)?;
+    validate(read_raw(path)?, path)
+}
+
+/// Decodes and validates an environment map held in memory (an embedded asset, or a file
+/// already read to hash it), exactly as [`load`] would read it from `path`: the extension of
+/// `path` picks the decoder, and errors and warnings name `path`.
+pub fn load_bytes(bytes: &[u8], path: &Path) -> Result<EnvMap, EnvMapError> {
+    validate(read_raw_bytes(bytes, path)?, path)
+}
+
+fn validate(raw: RawImage, path: &Path) -> Result<EnvMap, EnvMapError> {
     EnvMap::validated(
         raw.width,
         raw.height,
@@ -69,14 +104,8 @@ pub fn load(path: &Path) -> Result<EnvMap, EnvMapError> {
     )
 }
 
-fn read_exr(path: &Path) -> Result<RawImage, EnvMapError> {
+fn decode_exr(bytes: &[u8], path: &Path) -> Result<RawImage, EnvMapError> {
     use exr::prelude::*;
-    if let Err(source) = fs::metadata(path) {
-        return Err(EnvMapError::Io {
-            path: path.to_path_buf(),
-            source,
-        });
-    }
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
@@ -94,7 +123,7 @@ fn read_exr(path: &Path) -> Result<RawImage, EnvMapError> {
         .all_attributes()
         // Pedantic: a truncated or corrupt file is an error, not an image with holes.
         .pedantic()
-        .from_file(path)
+        .from_buffered(std::io::Cursor::new(bytes))
         .map_err(|e| EnvMapError::Decode {
             path: path.to_path_buf(),
             format: "OpenEXR",
@@ -103,8 +132,33 @@ fn read_exr(path: &Path) -> Result<RawImage, EnvMapError> {
     Ok(image.layer_data.channel_data.pixels)
 }
 
-fn read_with_image(path: &Path) -> Result<RawImage, EnvMapError> {
-    let img = decode_with_image(path)?;
+/// Decodes with the `image` crate (Radiance HDR, PNG, JPEG); `path` names the source.
+fn decode_dynamic<R: std::io::BufRead + std::io::Seek>(
+    reader: image::ImageReader<R>,
+    path: &Path,
+) -> Result<image::DynamicImage, EnvMapError> {
+    let format = if Format::of(path)? == Format::Hdr {
+        "Radiance HDR"
+    } else {
+        "PNG/JPEG"
+    };
+    let decode_err = |message: String| EnvMapError::Decode {
+        path: path.to_path_buf(),
+        format,
+        message,
+    };
+    let reader = reader
+        .with_guessed_format()
+        .map_err(|e| decode_err(e.to_string()))?;
+    reader.decode().map_err(|e| decode_err(e.to_string()))
+}
+
+/// [`decode_dynamic`] into linear RGB.
+fn decode_with_image<R: std::io::BufRead + std::io::Seek>(
+    reader: image::ImageReader<R>,
+    path: &Path,
+) -> Result<RawImage, EnvMapError> {
+    let img = decode_dynamic(reader, path)?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     use image::ColorType as C;
     let texels: Vec<Rgb> = match img.color() {
@@ -143,7 +197,11 @@ pub fn read_encoded(path: &Path) -> Result<RawImage, EnvMapError> {
             path: path.to_path_buf(),
         });
     }
-    let img = decode_with_image(path)?;
+    let reader = image::ImageReader::open(path).map_err(|source| EnvMapError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let img = decode_dynamic(reader, path)?;
     let (width, height) = (img.width() as usize, img.height() as usize);
     use image::ColorType as C;
     let texels: Vec<Rgb> = match img.color() {
@@ -163,28 +221,6 @@ pub fn read_encoded(path: &Path) -> Result<RawImage, EnvMapError> {
         height,
         texels,
     })
-}
-
-/// Opens and decodes a file with the `image` crate (Radiance HDR, PNG, JPEG).
-fn decode_with_image(path: &Path) -> Result<image::DynamicImage, EnvMapError> {
-    let format = if Format::of(path)? == Format::Hdr {
-        "Radiance HDR"
-    } else {
-        "PNG/JPEG"
-    };
-    let decode_err = |message: String| EnvMapError::Decode {
-        path: path.to_path_buf(),
-        format,
-        message,
-    };
-    let reader = image::ImageReader::open(path).map_err(|source| EnvMapError::Io {
-        path: path.to_path_buf(),
-        source,
-    })?;
-    let reader = reader
-        .with_guessed_format()
-        .map_err(|e| decode_err(e.to_string()))?;
-    reader.decode().map_err(|e| decode_err(e.to_string()))
 }
 
 /// The sRGB transfer function, decoded: 8-bit display value in [0, 1] to linear.
@@ -216,8 +252,12 @@ pub fn write_atomically(
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    // Keep the extension last: encoders pick the format from it.
-    let tmp: PathBuf = path.with_file_name(format!(".tmp.{}.{file_name}", std::process::id()));
+    // Unique per process and call, so that threads writing the same target do not share a
+    // temporary file. Keep the extension last: encoders pick the format from it.
+    static CALLS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp: PathBuf =
+        path.with_file_name(format!(".tmp.{}.{call}.{file_name}", std::process::id()));
     let result = write(&tmp).and_then(|()| {
         fs::rename(&tmp, path).map_err(|source| EnvMapError::Io {
             path: path.to_path_buf(),
@@ -381,6 +421,36 @@ mod tests {
     }
 
     #[test]
+    fn bytes_in_memory_decode_as_the_file_does() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.exr");
+        save_envmap_exr(&path, &sample_map()).unwrap();
+        let bytes = fs::read(&path).unwrap();
+        let named = Path::new("assets/embedded.exr");
+        assert_eq!(load_bytes(&bytes, named).unwrap(), load(&path).unwrap());
+        // Radiance HDR from memory too.
+        let hdr = dir.path().join("m.hdr");
+        let pixels = vec![image::Rgb([2.0f32, 0.5, 1e-2]); 32];
+        let f = fs::File::create(&hdr).unwrap();
+        image::codecs::hdr::HdrEncoder::new(f)
+            .encode(&pixels, 8, 4)
+            .unwrap();
+        let hdr_bytes = fs::read(&hdr).unwrap();
+        assert_eq!(
+            load_bytes(&hdr_bytes, Path::new("x.hdr")).unwrap(),
+            load(&hdr).unwrap()
+        );
+        // Corrupt bytes and unknown extensions are errors naming the given path.
+        let e = load_bytes(&bytes[..bytes.len() / 2], named).unwrap_err();
+        assert!(matches!(e, EnvMapError::Decode { .. }), "{e}");
+        assert!(e.to_string().contains("assets/embedded.exr"), "{e}");
+        let e = load_bytes(b"garbage", Path::new("x.hdr")).unwrap_err();
+        assert!(e.to_string().contains("x.hdr"), "{e}");
+        let e = load_bytes(&bytes, Path::new("x.tiff")).unwrap_err();
+        assert!(matches!(e, EnvMapError::UnsupportedFormat { .. }), "{e}");
+    }
+
+    #[test]
     fn missing_and_unknown_files_are_clear_errors() {
         let e = load(Path::new("no/such/map.exr")).unwrap_err();
         assert!(
@@ -446,6 +516,23 @@ mod tests {
     }
 
     #[test]
+    fn srgb_curves_invert_each_other() {
+        for i in 0..=255 {
+            let v = i as f32 / 255.0;
+            assert!((linear_to_srgb(srgb_to_linear(v)) - v).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn tonemap_is_finite_for_a_huge_sun_and_black() {
+        let px = tonemap(&[[1e6, 1e6, 1e6], [0.0; 3], [1.0, 0.0, 0.0]], 1.0);
+        assert_eq!(px[0], [255, 255, 255]);
+        assert_eq!(px[1], [0, 0, 0]);
+        assert!(px[2][0] > 0 && px[2][1] == 0);
+        assert_eq!(auto_exposure(&[[0.0; 3]; 4]), 1.0);
+    }
+
+    #[test]
     fn encoded_reading_keeps_the_stored_values() {
         let dir = tempfile::tempdir().unwrap();
         let png = dir.path().join("n.png");
@@ -472,22 +559,5 @@ mod tests {
             matches!(e, EnvMapError::Decode { .. }) && e.to_string().contains("n.png"),
             "{e}"
         );
-    }
-
-    #[test]
-    fn srgb_curves_invert_each_other() {
-        for i in 0..=255 {
-            let v = i as f32 / 255.0;
-            assert!((linear_to_srgb(srgb_to_linear(v)) - v).abs() < 1e-5);
-        }
-    }
-
-    #[test]
-    fn tonemap_is_finite_for_a_huge_sun_and_black() {
-        let px = tonemap(&[[1e6, 1e6, 1e6], [0.0; 3], [1.0, 0.0, 0.0]], 1.0);
-        assert_eq!(px[0], [255, 255, 255]);
-        assert_eq!(px[1], [0, 0, 0]);
-        assert!(px[2][0] > 0 && px[2][1] == 0);
-        assert_eq!(auto_exposure(&[[0.0; 3]; 4]), 1.0);
     }
 }
