@@ -7,17 +7,19 @@
 //! rotation. So batches can be made in any order, on any number of threads, and a resumed run
 //! sees exactly the data of an uninterrupted one.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use rayon::prelude::*;
 use serde::Deserialize;
 use volux_envmap::io::{linear_to_srgb, srgb_to_linear};
 use volux_envmap::report::SplitMix64;
-use volux_envmap::{LightMap, LightMapSet, Rgb};
+use volux_envmap::{LightMap, LightMapSet, PreconvolveOptions, Rgb};
 
 use crate::batch::Batch;
 use crate::folder_dataset::{FolderDataset, FolderError};
+use crate::hdri_collection::{HdriCollection, HdriCollectionConfig};
+use crate::light_map_bank::LightMapBank;
 use crate::pose_distribution::PoseDistribution;
 use crate::relighting::{DEFAULT_SPECULAR_WEIGHTS, IntrinsicImage};
 use crate::synthetic_head::{self, RenderSettings, SyntheticHead};
@@ -70,7 +72,31 @@ impl Default for SourceConfig {
     }
 }
 
-/// The data half of a training config.
+/// Where `volux data build` puts rendered examples (`[data.cache]`).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CacheConfig {
+    /// Folder of the shards and manifest.
+    pub dir: PathBuf,
+    /// How many examples to render.
+    pub examples: u64,
+    #[serde(default = "default_shard_size")]
+    pub shard_size: usize,
+}
+
+fn default_shard_size() -> usize {
+    256
+}
+
+fn default_resolution() -> usize {
+    64
+}
+
+fn default_volume_resolution() -> usize {
+    32
+}
+
+/// The data half of a training config (the `[data]` table).
 #[derive(Clone, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DataConfig {
@@ -80,8 +106,99 @@ pub struct DataConfig {
     /// Background colour, sRGB in `[0, 1]` (the generator composites over the same).
     #[serde(default)]
     pub background: [f32; 3],
+    /// Output (high) resolution of the examples, pixels per side.
+    #[serde(default = "default_resolution")]
+    pub resolution: usize,
+    /// Volume (low) resolution: the generator's rendered resolution; divides `resolution`.
+    #[serde(default = "default_volume_resolution")]
+    pub volume_resolution: usize,
     #[serde(default)]
     pub source: SourceConfig,
+    /// The environments examples are lit with.
+    #[serde(default)]
+    pub lighting: HdriCollectionConfig,
+    /// Folder where preconvolved light maps are cached (none: preconvolve every run).
+    #[serde(default)]
+    pub light_map_cache: Option<PathBuf>,
+    /// The on-disk example cache, if examples are rendered ahead of training.
+    #[serde(default)]
+    pub cache: Option<CacheConfig>,
+}
+
+impl DataConfig {
+    /// `resolution / volume_resolution`, checked.
+    pub fn factor(&self) -> Result<usize, DataError> {
+        let (hi, lo) = (self.resolution, self.volume_resolution);
+        if lo == 0 || hi == 0 || !hi.is_multiple_of(lo) {
+            return Err(DataError::Config(format!(
+                "resolution = {hi} must be a positive multiple of volume_resolution = {lo}"
+            )));
+        }
+        Ok(hi / lo)
+    }
+
+    /// Reads the `[data]` table of a config file (other tables belong to other commands),
+    /// rejecting unknown keys; relative paths are taken relative to the file's folder.
+    pub fn load(path: &Path) -> Result<(DataConfig, String), DataError> {
+        let text = std::fs::read_to_string(path).map_err(|e| DataError::File {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        let bad = |message: String| DataError::File {
+            path: path.to_path_buf(),
+            message,
+        };
+        let table: toml::Table = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        let data = table
+            .get("data")
+            .ok_or_else(|| bad("no [data] table".into()))?
+            .clone();
+        let mut config: DataConfig = data
+            .clone()
+            .try_into()
+            .map_err(|e: toml::de::Error| bad(format!("[data]: {e}")))?;
+        let base = path.parent().unwrap_or(Path::new(""));
+        config.resolve_paths(base);
+        // What examples depend on: the table as written, without the example cache's own
+        // settings (a bigger cache is the same dataset).
+        let mut hashed = data;
+        if let Some(t) = hashed.as_table_mut() {
+            t.remove("cache");
+            t.remove("light_map_cache");
+        }
+        Ok((config, toml::to_string(&hashed).unwrap_or_default()))
+    }
+
+    /// Joins relative paths to `base`.
+    pub fn resolve_paths(&mut self, base: &Path) {
+        let join = |p: &mut PathBuf| {
+            if p.is_relative() {
+                *p = base.join(&*p);
+            }
+        };
+        if let SourceConfig::Folder { path, .. } = &mut self.source {
+            join(path);
+        }
+        self.lighting.folders.iter_mut().for_each(join);
+        if let Some(p) = self.light_map_cache.as_mut() {
+            join(p);
+        }
+        if let Some(c) = self.cache.as_mut() {
+            join(&mut c.dir);
+        }
+    }
+
+    /// The light maps of the configured collection (through the light-map cache, if any).
+    pub fn light_bank(&self) -> Result<LightMapBank, DataError> {
+        let collection = HdriCollection::from_config(&self.lighting)
+            .map_err(|e| DataError::Lighting(e.to_string()))?;
+        LightMapBank::build(
+            &collection,
+            &PreconvolveOptions::default(),
+            self.light_map_cache.as_deref(),
+        )
+        .map_err(|e| DataError::Lighting(e.to_string()))
+    }
 }
 
 /// Why a dataset or an example cannot be made.
@@ -89,6 +206,10 @@ pub struct DataConfig {
 pub enum DataError {
     #[error("data config: {0}")]
     Config(String),
+    #[error("{path}: {message}")]
+    File { path: PathBuf, message: String },
+    #[error("lighting: {0}")]
+    Lighting(String),
     #[error(transparent)]
     Folder(#[from] FolderError),
     #[error("{stem}: {source}")]
@@ -127,23 +248,15 @@ pub struct Dataset {
 }
 
 impl Dataset {
-    /// Opens the source of `config` (a folder is listed, not decoded) for examples of
-    /// `side x side` pixels with low-resolution layers `factor` times smaller, lit by `lights`
-    /// (each the light maps 1, 16, 32, 64 of one environment).
-    pub fn new(
-        config: &DataConfig,
-        lights: Arc<Vec<LightMapSet>>,
-        side: usize,
-        factor: usize,
-    ) -> Result<Dataset, DataError> {
+    /// Opens the source of `config` (a folder is listed, not decoded) for examples at the
+    /// config's resolutions, lit by `lights` (each the light maps 1, 16, 32, 64 of one
+    /// environment; see [`DataConfig::light_bank`]).
+    pub fn new(config: &DataConfig, lights: Arc<Vec<LightMapSet>>) -> Result<Dataset, DataError> {
         if lights.is_empty() {
             return Err(DataError::Config("the light-map bank is empty".into()));
         }
-        if factor == 0 || side == 0 || !side.is_multiple_of(factor) {
-            return Err(DataError::Config(format!(
-                "resolution {side} is not a multiple of the low-resolution factor {factor}"
-            )));
-        }
+        let factor = config.factor()?;
+        let side = config.resolution;
         if let Some(k) = config
             .background
             .iter()
@@ -418,50 +531,69 @@ mod tests {
     #[test]
     fn impossible_values_are_errors_naming_the_key() {
         let lights = bank();
-        let bad = |toml_text: &str, side: usize, factor: usize| {
+        let bad = |toml_text: &str| {
             let config: DataConfig = toml::from_str(toml_text).unwrap();
-            Dataset::new(&config, lights.clone(), side, factor)
+            Dataset::new(&config, lights.clone())
                 .err()
                 .unwrap()
                 .to_string()
         };
-        assert!(bad("", 30, 4).contains("multiple of the low-resolution factor 4"));
-        assert!(bad("background = [0.0, 2.0, 0.0]", 32, 2).contains("background[1]"));
+        let sizes = bad("resolution = 30\nvolume_resolution = 8");
+        assert!(sizes.contains("resolution = 30") && sizes.contains("volume_resolution = 8"));
+        assert!(bad("background = [0.0, 2.0, 0.0]").contains("background[1]"));
+        assert!(bad("[source]\nkind = \"synthetic\"\nidentities = 0").contains("identities"));
+        assert!(bad("[source]\nkind = \"synthetic\"\nsupersample = 9").contains("supersample"));
+        let poses = "[source]\nkind = \"synthetic\"\n[source.poses]\nyaw_sd = -1.0";
+        assert!(bad(poses).contains("source.poses.yaw_sd"));
+        let folder = "[source]\nkind = \"folder\"\npath = \"no/such/folder\"";
+        assert!(bad(folder).contains("no/such/folder"));
+        let config: DataConfig = toml::from_str("").unwrap();
+        assert!(Dataset::new(&config, Arc::new(Vec::new())).is_err());
+    }
+
+    #[test]
+    fn config_files_name_themselves_in_errors_and_resolve_relative_paths() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("run.toml");
+        let write = |text: &str| std::fs::write(&file, text).unwrap();
+        write(
+            "[train]\nsteps = 3\n[data]\nseed = 4\nlight_map_cache = \"lm\"\n[data.source]\nkind = \"folder\"\npath = \"faces\"\n[data.cache]\ndir = \"cache\"\nexamples = 8\n",
+        );
+        let (config, hashed) = DataConfig::load(&file).unwrap();
+        assert_eq!(config.seed, 4);
         assert!(
-            bad("[source]\nkind = \"synthetic\"\nidentities = 0", 32, 2).contains("identities")
+            matches!(&config.source, SourceConfig::Folder { path, .. } if *path == dir.path().join("faces"))
+        );
+        assert_eq!(config.cache.as_ref().unwrap().dir, dir.path().join("cache"));
+        assert_eq!(config.cache.as_ref().unwrap().shard_size, 256);
+        // The fingerprinted text leaves out where things are cached.
+        assert!(hashed.contains("seed") && !hashed.contains("examples") && !hashed.contains("lm"));
+        write("[data]\nseed = \"x\"\n");
+        let err = DataConfig::load(&file).unwrap_err().to_string();
+        assert!(err.contains("run.toml") && err.contains("seed"), "{err}");
+        write("[data.lighting]\nskys = 3\n");
+        let err = DataConfig::load(&file).unwrap_err().to_string();
+        assert!(err.contains("run.toml") && err.contains("skys"), "{err}");
+        write("[model]\n");
+        assert!(
+            DataConfig::load(&file)
+                .unwrap_err()
+                .to_string()
+                .contains("no [data] table")
         );
         assert!(
-            bad("[source]\nkind = \"synthetic\"\nsupersample = 9", 32, 2).contains("supersample")
+            DataConfig::load(&dir.path().join("none.toml"))
+                .unwrap_err()
+                .to_string()
+                .contains("none.toml")
         );
-        assert!(
-            bad(
-                "[source]\nkind = \"synthetic\"\n[source.poses]\nyaw_sd = -1.0",
-                32,
-                2
-            )
-            .contains("source.poses.yaw_sd")
-        );
-        assert!(
-            bad(
-                "[source]\nkind = \"folder\"\npath = \"no/such/folder\"",
-                32,
-                2
-            )
-            .contains("no/such/folder")
-        );
-        let config = DataConfig {
-            seed: 0,
-            background: [0.0; 3],
-            source: SourceConfig::default(),
-        };
-        assert!(Dataset::new(&config, Arc::new(Vec::new()), 32, 2).is_err());
     }
 
     #[test]
     fn examples_are_a_pure_function_of_their_index() {
         let config: DataConfig =
-            toml::from_str("seed = 9\n[source]\nkind = \"synthetic\"\nidentities = 4\n").unwrap();
-        let data = Dataset::new(&config, bank(), 16, 2).unwrap();
+            toml::from_str("seed = 9\nresolution = 16\nvolume_resolution = 8\n[source]\nkind = \"synthetic\"\nidentities = 4\n").unwrap();
+        let data = Dataset::new(&config, bank()).unwrap();
         let batch = data.batch(2, 3).unwrap();
         assert_eq!(
             (batch.size, batch.side, batch.side_lo, batch.index),
@@ -483,8 +615,6 @@ mod tests {
                 ..config.clone()
             },
             bank(),
-            16,
-            2,
         )
         .unwrap();
         assert_ne!(

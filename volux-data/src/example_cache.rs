@@ -430,8 +430,9 @@ mod tests {
             )
             .unwrap(),
         ]);
-        let config: DataConfig = toml::from_str(&format!("seed = {seed}")).unwrap();
-        Dataset::new(&config, lights, 8, 2).unwrap()
+        let text = format!("seed = {seed}\nresolution = 8\nvolume_resolution = 4");
+        let config: DataConfig = toml::from_str(&text).unwrap();
+        Dataset::new(&config, lights).unwrap()
     }
 
     #[test]
