@@ -188,3 +188,63 @@ fn model_sampling_report_prints_a_table_and_rejects_a_missing_hdri() {
     assert!(!o.status.success());
     assert!(text(&o).contains("no/such/map.exr"), "{}", text(&o));
 }
+
+#[test]
+fn data_build_renders_a_cache_and_a_rerun_keeps_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("tiny.toml");
+    std::fs::write(
+        &config,
+        "[data]\nresolution = 16\nvolume_resolution = 8\n\
+         [data.lighting]\nbuiltin = false\nskies = 1\novercast = 1\nstudios = 1\nprocedural_height = 32\n\
+         [data.cache]\ndir = \"examples\"\nexamples = 5\nshard_size = 2\n",
+    )
+    .unwrap();
+    let first = volux(&["data", "build", "--config", config.to_str().unwrap()]);
+    assert!(first.status.success(), "{}", text(&first));
+    assert!(
+        text(&first).contains("5 examples in 3 shards (0 kept, 3 built)"),
+        "{}",
+        text(&first)
+    );
+    assert!(dir.path().join("examples/manifest.toml").exists());
+    let again = volux(&["data", "build", "--config", config.to_str().unwrap()]);
+    assert!(
+        text(&again).contains("(3 kept, 0 built)"),
+        "{}",
+        text(&again)
+    );
+    // A typo in a key is an error naming the file and the key.
+    std::fs::write(&config, "[data]\nresolutoin = 16\n").unwrap();
+    let bad = volux(&["data", "build", "--config", config.to_str().unwrap()]);
+    assert!(!bad.status.success());
+    assert!(
+        text(&bad).contains("tiny.toml") && text(&bad).contains("resolutoin"),
+        "{}",
+        text(&bad)
+    );
+}
+
+#[test]
+fn data_heads_writes_a_contact_sheet_and_reports_speed() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = volux(&[
+        "data",
+        "heads",
+        "--seeds",
+        "0-1",
+        "--side",
+        "16",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("images/s"), "{}", text(&o));
+    assert!(dir.path().join("heads.png").exists());
+    let bad = volux(&["data", "heads", "--seeds", "7-2"]);
+    assert!(
+        !bad.status.success() && text(&bad).contains("--seeds"),
+        "{}",
+        text(&bad)
+    );
+}

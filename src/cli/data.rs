@@ -1,11 +1,15 @@
-//! `volux data`: the built-in synthetic heads (previews and speed).
+//! `volux data`: render a dataset into its example cache; preview the built-in synthetic heads.
 
+use std::io::IsTerminal;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand};
 use volux_data::contact_sheet::{self, ContactSheet};
+use volux_data::dataset::{DataConfig, Dataset};
+use volux_data::example_cache::{self, CacheSpec};
 use volux_data::pose_distribution::PoseDistribution;
 use volux_data::synthetic_head::{self, RenderSettings, SyntheticHead};
 use volux_envmap::report::SplitMix64;
@@ -13,9 +17,19 @@ use volux_envmap::{LightMap, PreconvolveOptions, io, preconvolve};
 
 #[derive(Debug, Subcommand)]
 pub enum DataCommand {
+    /// Render a config's dataset into its on-disk example cache ([data.cache]): sharded, with
+    /// a manifest; a rerun redoes only what changed and an interrupted build resumes.
+    Build(BuildArgs),
     /// Render synthetic heads into a contact sheet of every layer (photo, relit, albedo,
     /// normals, mask, depth, diffuse, specular) and report images per second.
     Heads(HeadsArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct BuildArgs {
+    /// Config file with a [data] table (a training config).
+    #[arg(long)]
+    pub config: PathBuf,
 }
 
 #[derive(Debug, Args)]
@@ -45,8 +59,67 @@ pub struct HeadsArgs {
 
 pub fn run(cmd: DataCommand) -> anyhow::Result<()> {
     match cmd {
+        DataCommand::Build(args) => build(args),
         DataCommand::Heads(args) => heads(args),
     }
+}
+
+fn build(args: BuildArgs) -> anyhow::Result<()> {
+    let (config, hashed) = DataConfig::load(&args.config)?;
+    let Some(cache) = config.cache.clone() else {
+        bail!(
+            "{}: no [data.cache] table: add one with `dir` and `examples` to render examples ahead of training",
+            args.config.display()
+        );
+    };
+    let start = Instant::now();
+    let bank = config.light_bank()?;
+    let stats = bank.stats();
+    println!(
+        "{} environments ({} light-map cache hits, {} preconvolved) in {:.1} s",
+        bank.len(),
+        stats.hits,
+        stats.misses,
+        start.elapsed().as_secs_f64()
+    );
+    let keys: Vec<String> = (0..bank.len()).map(|i| bank.key(i).to_hex()).collect();
+    let dataset = Dataset::new(&config, Arc::new(bank.sets().to_vec()))?;
+    let fingerprint = example_cache::fingerprint(&[hashed.as_bytes(), keys.join(",").as_bytes()]);
+    let spec = CacheSpec {
+        examples: cache.examples,
+        shard_size: cache.shard_size,
+    };
+    let shards = cache.examples.div_ceil(cache.shard_size.max(1) as u64) as usize;
+    let bar = super::envmap::progress_bar(std::io::stderr().is_terminal(), shards);
+    bar.set_message("shards");
+    let start = Instant::now();
+    let report = example_cache::build(&cache.dir, &dataset, &fingerprint, spec, &|done, _| {
+        bar.set_position(done as u64);
+        if bar.is_hidden() {
+            tracing::info!("{done}/{shards} shards");
+        }
+    })?;
+    bar.finish_and_clear();
+    let seconds = start.elapsed().as_secs_f64();
+    let made = report.built.min(report.shards) as f64 * cache.shard_size as f64;
+    println!(
+        "{}: {} examples in {} shards ({} kept, {} built) in {:.1} s{}",
+        cache.dir.display(),
+        report.examples,
+        report.shards,
+        report.kept,
+        report.built,
+        seconds,
+        if report.built > 0 {
+            format!(
+                ", about {:.1} examples/s",
+                made.min(report.examples as f64) / seconds
+            )
+        } else {
+            String::new()
+        }
+    );
+    Ok(())
 }
 
 /// Parses `0-7` or `1,5,9`.

@@ -203,7 +203,7 @@ fn preconvolve(args: PreconvolveArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn progress_bar(show: bool, steps: usize) -> ProgressBar {
+pub(crate) fn progress_bar(show: bool, steps: usize) -> ProgressBar {
     if !show {
         return ProgressBar::hidden();
     }

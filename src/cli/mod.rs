@@ -26,7 +26,7 @@ pub enum Command {
     /// The networks: parameter counts, the renderer's error against samples per ray, speed.
     #[command(subcommand)]
     Model(model::ModelCommand),
-    /// Training data: the built-in synthetic heads.
+    /// Training data: build a dataset's example cache, preview the synthetic heads.
     #[command(subcommand)]
     Data(data::DataCommand),
     /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
