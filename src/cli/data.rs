@@ -8,7 +8,7 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand};
 use volux_data::contact_sheet::{self, ContactSheet};
-use volux_data::dataset::{DataConfig, Dataset};
+use volux_data::dataset::{self, DataConfig, Dataset};
 use volux_data::example_cache::{self, CacheSpec};
 use volux_data::pose_distribution::PoseDistribution;
 use volux_data::synthetic_head::{self, RenderSettings, SyntheticHead};
@@ -82,9 +82,8 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
         stats.misses,
         start.elapsed().as_secs_f64()
     );
-    let keys: Vec<String> = (0..bank.len()).map(|i| bank.key(i).to_hex()).collect();
     let dataset = Dataset::new(&config, Arc::new(bank.sets().to_vec()))?;
-    let fingerprint = example_cache::fingerprint(&[hashed.as_bytes(), keys.join(",").as_bytes()]);
+    let fingerprint = dataset::fingerprint(&hashed, &bank);
     let spec = CacheSpec {
         examples: cache.examples,
         shard_size: cache.shard_size,
