@@ -776,4 +776,15 @@ mod tests {
             Examples::Live(_)
         ));
     }
+
+    #[test]
+    fn the_documented_config_parses() {
+        let doc = include_str!("../../docs/data.md");
+        let start = doc.find("```toml\n").expect("a toml block") + "```toml\n".len();
+        let block = &doc[start..start + doc[start..].find("```").unwrap()];
+        let table: toml::Table = toml::from_str(block).unwrap();
+        let config: DataConfig = table["data"].clone().try_into().unwrap();
+        assert_eq!((config.resolution, config.volume_resolution), (64, 32));
+        assert_eq!(config.cache.unwrap().examples, 10_000);
+    }
 }
