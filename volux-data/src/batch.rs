@@ -11,6 +11,9 @@ use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
 use burn::tensor::{Device, Tensor, TensorData};
+use volux_envmap::{LightMap, LightMapSet};
+use volux_model::light_lookup::LightMapBatch;
+use volux_model::volume_rendering::Lighting;
 
 use crate::training_sample::{LightingDraw, TrainingSample};
 
@@ -36,6 +39,17 @@ pub struct Batch {
     /// The (environment, rotation) each example was lit with; the generator's samples of this
     /// step are lit with the same draws.
     pub draws: Vec<LightingDraw>,
+}
+
+/// Why a batch's lighting cannot be put on a device.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum LightingTensorError {
+    #[error("draw names environment {0} of a bank of {1}")]
+    Index(usize, usize),
+    #[error("an environment lacks the light map of exponent {0}")]
+    Exponent(u32),
+    #[error("{0}")]
+    Model(String),
 }
 
 /// A batch on a device.
@@ -103,6 +117,38 @@ impl Batch {
             push_planar(&mut batch.specular, &s.specular, same);
         }
         batch
+    }
+
+    /// The light maps and yaws the batch's draws name, on `device`, as the generator's
+    /// `Lighting` (one map per example for each exponent of the bank's sets).
+    pub fn lighting(
+        &self,
+        bank: &[LightMapSet],
+        device: &Device,
+    ) -> Result<Lighting, LightingTensorError> {
+        let sets: Vec<&LightMapSet> = self
+            .draws
+            .iter()
+            .map(|d| {
+                bank.get(d.map)
+                    .ok_or(LightingTensorError::Index(d.map, bank.len()))
+            })
+            .collect::<Result<_, _>>()?;
+        let exponents = sets[0].exponents();
+        let mut maps = Vec::with_capacity(exponents.len());
+        for n in exponents {
+            let per_example: Vec<&LightMap> = sets
+                .iter()
+                .map(|s| s.get(n).ok_or(LightingTensorError::Exponent(n)))
+                .collect::<Result<_, _>>()?;
+            maps.push(
+                LightMapBatch::new(&per_example, device)
+                    .map_err(|e| LightingTensorError::Model(e.to_string()))?,
+            );
+        }
+        let yaws: Vec<f32> = self.draws.iter().map(|d| d.yaw as f32).collect();
+        let yaw = Tensor::<1>::from_data(TensorData::new(yaws, [self.size]), device);
+        Lighting::new(maps, Some(yaw)).map_err(|e| LightingTensorError::Model(e.to_string()))
     }
 
     /// The batch on `device`.

@@ -127,6 +127,11 @@ pub struct DataConfig {
 }
 
 impl DataConfig {
+    /// The background as an albedo (linear): what the generator composites its albedo over.
+    pub fn albedo_background(&self) -> [f32; 3] {
+        self.background.map(srgb_to_linear)
+    }
+
     /// `resolution / volume_resolution`, checked.
     pub fn factor(&self) -> Result<usize, DataError> {
         let (hi, lo) = (self.resolution, self.volume_resolution);
@@ -786,5 +791,56 @@ mod tests {
         let config: DataConfig = table["data"].clone().try_into().unwrap();
         assert_eq!((config.resolution, config.volume_resolution), (64, 32));
         assert_eq!(config.cache.unwrap().examples, 10_000);
+    }
+
+    #[test]
+    fn batches_match_what_the_small_generator_makes() {
+        use burn::tensor::{Device, Distribution, Tensor};
+        use volux_model::generator::GeneratorWants;
+        use volux_model::presets::Preset;
+        let g_config = Preset::Small.generator();
+        let config: DataConfig = toml::from_str(&format!(
+            "resolution = {}\nvolume_resolution = {}\n[source]\nkind = \"synthetic\"\nidentities = 3",
+            g_config.output_resolution, g_config.volume_resolution
+        ))
+        .unwrap();
+        let lights = bank();
+        let data = Dataset::new(&config, lights.clone()).unwrap();
+        let batch = data.batch(0, 2).unwrap();
+        let device = Device::flex();
+        device.seed(1);
+        let real = batch.to_tensors(&device);
+        let lighting = batch.lighting(&lights, &device).unwrap();
+        let generator = g_config.init(&device).unwrap();
+        let z = Tensor::<2>::random(
+            [2, g_config.mapping.z_dim],
+            Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let fake = generator
+            .forward(
+                z,
+                &batch.poses,
+                Some(&lighting),
+                config.albedo_background(),
+                GeneratorWants::ALL,
+                None,
+                false,
+            )
+            .unwrap();
+        assert_eq!(fake.albedo_hi.unwrap().dims(), real.albedo_hi.dims());
+        assert_eq!(fake.albedo_lo.unwrap().dims(), real.albedo_lo.dims());
+        assert_eq!(fake.normals_lo.unwrap().dims(), real.normals_lo.dims());
+        assert_eq!(fake.relit.unwrap().dims(), real.relit.dims());
+        let lo = g_config.volume_resolution;
+        assert_eq!(fake.opacity.dims(), [2, 1, lo, lo]);
+        assert_eq!(
+            fake.diffuse_lo.unwrap().dims()[..2],
+            real.diffuse.dims()[..2]
+        );
+        // A draw naming a missing environment is an error, not a panic.
+        let mut bad = batch.clone();
+        bad.draws[1].map = 7;
+        assert!(bad.lighting(&lights, &device).is_err());
     }
 }
