@@ -1,5 +1,9 @@
-//! Training VoLux-GAN: losses, R1 and path regularisation, the staged schedule, optimisers,
-//! EMA, checkpoints, sampling and metrics.
+//! Training VoLux-GAN (paper section 3.4): the losses ([`losses`]: non-saturating logistic
+//! losses, lazy R1, the path loss, the shading discriminator's condition, loss weights) and
+//! the staged schedule ([`schedule`]: stage 1 with progressive growing, stage 2 end to end,
+//! which terms run).
 //!
-//! Not implemented yet: this crate is an empty library so that the workspace has its final
-//! shape and dependency direction (`volux-data`, `volux-model <- volux-train`).
+//! Still to come: optimisers, EMA, the training loop, checkpoints, sampling and metrics.
+
+pub mod losses;
+pub mod schedule;

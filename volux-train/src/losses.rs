@@ -1,0 +1,261 @@
+//! The adversarial losses of the paper (section 3.4; DESIGN.md, "Discriminators and losses"):
+//! StyleGAN2's non-saturating logistic loss for every discriminator, lazily regularised R1 on
+//! reals, the path loss tying the low- and high-resolution albedo, and the weights of the four
+//! adversarial terms.
+//!
+//! Every loss is a mean over the batch, `[1]`. Softplus is Burn's, which stays finite for
+//! logits of any size (it returns `x` itself above a threshold).
+
+use burn::tensor::Tensor;
+use burn::tensor::activation::softplus;
+use serde::Deserialize;
+use volux_model::discriminator::{Discriminator, r1_penalty};
+
+/// Generator loss against one discriminator: `mean softplus(-D(fake))`.
+pub fn generator_loss(fake_logits: Tensor<2>) -> Tensor<1> {
+    softplus(fake_logits.neg(), 1.0).mean()
+}
+
+/// Discriminator loss: `mean softplus(D(fake)) + mean softplus(-D(real))`.
+pub fn discriminator_loss(real_logits: Tensor<2>, fake_logits: Tensor<2>) -> Tensor<1> {
+    softplus(fake_logits, 1.0).mean() + softplus(real_logits.neg(), 1.0).mean()
+}
+
+/// StyleGAN2's lazy R1: on the steps where it runs (every `interval` discriminator steps) the
+/// penalty `gamma / 2 * E ||grad_x D(x)||^2` on reals is multiplied by `interval`, so that
+/// its average weight is `gamma`. Returns the reals' logits and the scaled penalty.
+pub fn lazy_r1(
+    d: &Discriminator,
+    reals: Tensor<4>,
+    gamma: f64,
+    interval: usize,
+) -> (Tensor<2>, Tensor<1>) {
+    let (logits, penalty) = r1_penalty(d, reals, gamma);
+    (logits, penalty.mul_scalar(interval as f64))
+}
+
+/// `a` averaged over `factor x factor` blocks: `[b, c, h, w] -> [b, c, h / f, w / f]`.
+pub fn area_downsample(a: Tensor<4>, factor: usize) -> Tensor<4> {
+    let [b, c, h, w] = a.dims();
+    let (ho, wo) = (h / factor, w / factor);
+    a.reshape([b, c, ho, factor, wo, factor])
+        .mean_dim(5)
+        .mean_dim(3)
+        .reshape([b, c, ho, wo])
+}
+
+/// The path loss: `mean |A_lo - downsample(A_hi)|`, the high-resolution albedo area-averaged
+/// to the low resolution (the dataset's low-resolution albedo is made the same way).
+pub fn path_loss(albedo_lo: Tensor<4>, albedo_hi: Tensor<4>) -> Tensor<1> {
+    let factor = albedo_hi.dims()[2] / albedo_lo.dims()[2];
+    (albedo_lo - area_downsample(albedo_hi, factor))
+        .abs()
+        .mean()
+}
+
+/// What `D_S` sees: the relit image with the diffuse and specular maps it was shaded with,
+/// detached (the paper's conditioning), HDR shading through `log1p` as in the relighting
+/// network. `[b, 9, H, W]`.
+pub fn shading_condition(relit: Tensor<4>, diffuse: Tensor<4>, specular: Tensor<4>) -> Tensor<4> {
+    Tensor::cat(
+        vec![relit, diffuse.detach().log1p(), specular.detach().log1p()],
+        1,
+    )
+}
+
+/// Weights of the loss terms (`[loss]` in a training config). A weight of 0 turns its term
+/// off, and with it its discriminator and the renders only it needs.
+#[derive(Clone, Copy, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LossWeights {
+    /// `L_A`: albedo, low and high resolution.
+    pub albedo: f64,
+    /// `L_G`: normal maps.
+    pub geometry: f64,
+    /// `L_S`: shading, on `[I_relit, D, S]`.
+    pub shading: f64,
+    /// `L_P`: the relit image against photos.
+    pub photo: f64,
+    /// L1 between `A_lo` and the downsampled `A_hi`.
+    pub path: f64,
+}
+
+impl Default for LossWeights {
+    fn default() -> Self {
+        LossWeights {
+            albedo: 1.0,
+            geometry: 0.5,
+            shading: 0.25,
+            photo: 0.75,
+            path: 0.5,
+        }
+    }
+}
+
+impl LossWeights {
+    /// Checks every weight is finite and non-negative, naming the bad one.
+    pub fn validate(&self) -> Result<(), String> {
+        for (key, v) in self.named() {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("loss.{key} = {v} must be finite and >= 0"));
+            }
+        }
+        Ok(())
+    }
+
+    /// `(name, weight)` of every term.
+    pub fn named(&self) -> [(&'static str, f64); 5] {
+        [
+            ("albedo", self.albedo),
+            ("geometry", self.geometry),
+            ("shading", self.shading),
+            ("photo", self.photo),
+            ("path", self.path),
+        ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::{Device, TensorData};
+
+    fn t2(v: &[f32]) -> Tensor<2> {
+        Tensor::<1>::from_floats(v, &Device::flex()).reshape([v.len(), 1])
+    }
+
+    fn scalar(t: Tensor<1>) -> f64 {
+        f64::from(t.into_data().try_to_vec::<f32>().unwrap()[0])
+    }
+
+    fn softplus64(x: f64) -> f64 {
+        x.max(0.0) + (-x.abs()).exp().ln_1p()
+    }
+
+    #[test]
+    fn logistic_losses_match_an_f64_reference() {
+        let (real, fake) = ([0.0, 2.0, -3.0, 0.5], [1.0, -1.5, 4.0, 0.0]);
+        let g = scalar(generator_loss(t2(&fake.map(|v| v as f32))));
+        let want_g = fake.iter().map(|&f| softplus64(-f)).sum::<f64>() / 4.0;
+        assert!((g - want_g).abs() < 1e-6, "{g} vs {want_g}");
+        let d = scalar(discriminator_loss(
+            t2(&real.map(|v| v as f32)),
+            t2(&fake.map(|v| v as f32)),
+        ));
+        let want_d = fake.iter().map(|&f| softplus64(f)).sum::<f64>() / 4.0
+            + real.iter().map(|&r| softplus64(-r)).sum::<f64>() / 4.0;
+        assert!((d - want_d).abs() < 1e-6, "{d} vs {want_d}");
+        // At D = 0 everywhere both players see ln 2 per term.
+        let zero = t2(&[0.0; 3]);
+        assert!((scalar(discriminator_loss(zero.clone(), zero)) - 2.0 * 2f64.ln()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn losses_and_their_gradients_stay_finite_for_extreme_logits() {
+        let device = Device::flex().autodiff();
+        let logits = Tensor::<1>::from_floats([1e4f32, -1e4, 88.0, -88.0, 0.0].as_slice(), &device)
+            .reshape([5, 1])
+            .require_grad();
+        let loss =
+            discriminator_loss(logits.clone(), logits.clone()) + generator_loss(logits.clone());
+        let value = scalar(loss.clone().inner());
+        assert!(value.is_finite(), "{value}");
+        // softplus(1e4) = 1e4: the loss is dominated by it, exactly.
+        assert!((value - (1e4 + 1e4 + 1e4 + 3.0 * 88.0) / 5.0 - 3.0 * 2f64.ln() / 5.0).abs() < 1.0);
+        let grads = loss.backward();
+        let g: Vec<f32> = logits
+            .grad(&grads)
+            .unwrap()
+            .into_data()
+            .try_to_vec()
+            .unwrap();
+        assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
+        // d/dx [softplus(x) + softplus(-x) + softplus(-x)] / 5 = (sigmoid(x) - 2 sigmoid(-x)) / 5.
+        let want = |x: f64| (1.0 / (1.0 + (-x).exp()) - 2.0 / (1.0 + x.exp())) / 5.0;
+        for (x, gx) in [1e4, -1e4, 88.0, -88.0, 0.0].iter().zip(&g) {
+            assert!(
+                (f64::from(*gx) - want(*x)).abs() < 1e-6,
+                "x {x}: {gx} vs {}",
+                want(*x)
+            );
+        }
+    }
+
+    #[test]
+    fn path_loss_is_zero_for_consistent_albedo_and_the_offset_otherwise() {
+        let device = Device::flex();
+        let lo = Tensor::<4>::from_data(
+            TensorData::new(
+                (0..2 * 3 * 4 * 4).map(|i| i as f32 / 96.0).collect(),
+                [2, 3, 4, 4],
+            ),
+            &device,
+        );
+        // Nearest-neighbour x2 upsampling: every 2x2 block averages back to its pixel.
+        let hi = lo
+            .clone()
+            .reshape([2, 3, 4, 1, 4, 1])
+            .repeat_dim(3, 2)
+            .repeat_dim(5, 2)
+            .reshape([2, 3, 8, 8]);
+        assert!(scalar(path_loss(lo.clone(), hi.clone())) < 1e-7);
+        assert!((scalar(path_loss(lo.add_scalar(0.25), hi)) - 0.25).abs() < 1e-6);
+    }
+
+    #[test]
+    fn shading_condition_stacks_nine_channels_and_stops_gradients_to_the_shading() {
+        let device = Device::flex().autodiff();
+        let ones = |c| Tensor::<4>::ones([1, c, 2, 2], &device).require_grad();
+        let (relit, d, s) = (ones(3), ones(3), ones(3));
+        let x = shading_condition(relit.clone(), d.clone(), s.clone());
+        assert_eq!(x.dims(), [1, 9, 2, 2]);
+        let v: Vec<f32> = x.clone().inner().into_data().try_to_vec().unwrap();
+        // Channel 0 is the relit image as it is, channel 3 (index 12) log1p of the diffuse.
+        assert_eq!(v[0], 1.0);
+        assert!((v[12] - 1f32.ln_1p()).abs() < 1e-6);
+        let grads = x.sum().backward();
+        assert!(relit.grad(&grads).is_some());
+        assert!(d.grad(&grads).is_none() && s.grad(&grads).is_none());
+    }
+
+    #[test]
+    fn lazy_r1_is_the_penalty_times_the_interval() {
+        use volux_model::discriminator::DiscriminatorConfig;
+        let device = Device::flex();
+        device.seed(3);
+        let d = DiscriminatorConfig::small(3, 16).init(&device);
+        let reals = Tensor::<4>::random(
+            [2, 3, 16, 16],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        );
+        let (_, once) = r1_penalty(&d, reals.clone(), 10.0);
+        let (_, lazy) = lazy_r1(&d, reals, 10.0, 16);
+        let (once, lazy) = (scalar(once), scalar(lazy));
+        assert!(
+            once > 0.0 && (lazy - 16.0 * once).abs() < 1e-4 * lazy,
+            "{lazy} vs 16 x {once}"
+        );
+    }
+
+    #[test]
+    fn weights_default_to_the_papers_and_reject_bad_values() {
+        assert_eq!(
+            LossWeights::default().named().map(|(_, w)| w),
+            [1.0, 0.5, 0.25, 0.75, 0.5]
+        );
+        let w: LossWeights = toml::from_str("photo = 0.0").unwrap();
+        assert_eq!((w.photo, w.albedo), (0.0, 1.0));
+        assert!(
+            toml::from_str::<LossWeights>("phot = 1.0")
+                .unwrap_err()
+                .to_string()
+                .contains("phot")
+        );
+        let bad = LossWeights {
+            shading: -1.0,
+            ..LossWeights::default()
+        };
+        assert!(bad.validate().unwrap_err().contains("loss.shading"));
+    }
+}
