@@ -6,23 +6,12 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
+use volux_data::hdri_collection::BUILTIN_HDRIS;
 use volux_envmap::preconvolve::{
     DEFAULT_TAPER, DEFAULT_TOLERANCE, Progress, preconvolve_with_progress,
 };
 use volux_envmap::report::{self, BenchSettings};
 use volux_envmap::{EnvMap, MapStats, PreconvolveOptions, io};
-
-/// The HDRIs that ship with volux (CC0, Poly Haven; see assets/hdri/license.txt).
-pub const SHIPPED_HDRIS: [&str; 8] = [
-    "city",
-    "courtyard",
-    "forest",
-    "interior",
-    "night",
-    "studio",
-    "sunrise",
-    "sunset",
-];
 
 #[derive(Debug, Subcommand)]
 pub enum EnvmapCommand {
@@ -216,42 +205,33 @@ pub(crate) fn progress_bar(show: bool, steps: usize) -> ProgressBar {
     bar
 }
 
-/// Directory of the shipped HDRIs: next to the executable's workspace in a checkout, or the
-/// working directory's `assets/hdri`.
-pub fn shipped_hdri_dir() -> anyhow::Result<PathBuf> {
-    let candidates = [
-        PathBuf::from("assets/hdri"),
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("assets/hdri"),
-    ];
-    candidates
-        .into_iter()
-        .find(|p| p.join("studio.exr").exists())
-        .context("cannot find the shipped HDRIs (assets/hdri); run from the volux checkout or name the files")
-}
-
 fn bench(args: BenchArgs) -> anyhow::Result<()> {
-    let files: Vec<PathBuf> = if args.files.is_empty() {
-        let dir = shipped_hdri_dir()?;
-        SHIPPED_HDRIS
-            .iter()
-            .map(|n| dir.join(format!("{n}.exr")))
-            .collect()
-    } else {
-        args.files.clone()
-    };
     if args.directions == 0 {
         bail!("--directions must be at least 1");
     }
-    let maps: Vec<(String, EnvMap)> = files
-        .iter()
-        .map(|f| {
-            let name = f
-                .file_stem()
-                .map(|s| s.to_string_lossy().into_owned())
-                .unwrap_or_default();
-            Ok((name, io::load(f)?))
-        })
-        .collect::<anyhow::Result<_>>()?;
+    // Without files: the shipped maps, embedded in the binary.
+    let maps: Vec<(String, EnvMap)> = if args.files.is_empty() {
+        BUILTIN_HDRIS
+            .iter()
+            .map(|h| {
+                Ok((
+                    h.name.to_string(),
+                    io::load_bytes(h.bytes, Path::new(h.path))?,
+                ))
+            })
+            .collect::<anyhow::Result<_>>()?
+    } else {
+        args.files
+            .iter()
+            .map(|f| {
+                let name = f
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                Ok((name, io::load(f)?))
+            })
+            .collect::<anyhow::Result<_>>()?
+    };
     let settings = BenchSettings {
         exponents: args.exponents,
         tolerances: args.tolerances,

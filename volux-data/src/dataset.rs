@@ -357,6 +357,19 @@ impl Dataset {
     /// Example `index`.
     pub fn example(&self, index: u64) -> Result<TrainingSample, DataError> {
         let mut rng = SplitMix64::new(mix(self.seed, index));
+        let finish = |intrinsics: Intrinsics<'_>, draw: LightingDraw, stem: &str| {
+            make_sample(
+                intrinsics,
+                &self.maps(draw),
+                draw,
+                self.background,
+                self.factor,
+            )
+            .map_err(|source| DataError::Sample {
+                stem: stem.to_string(),
+                source,
+            })
+        };
         match &self.source {
             Source::Synthetic {
                 identities,
@@ -372,17 +385,7 @@ impl Dataset {
                     head: &head,
                     render: &render,
                 };
-                make_sample(
-                    intrinsics,
-                    &self.maps(draw),
-                    draw,
-                    self.background,
-                    self.factor,
-                )
-                .map_err(|source| DataError::Sample {
-                    stem: format!("synthetic head {identity}"),
-                    source,
-                })
+                finish(intrinsics, draw, &format!("synthetic head {identity}"))
             }
             Source::Folder {
                 dataset,
@@ -391,10 +394,11 @@ impl Dataset {
                 let i = (rng.next_u64() % dataset.len() as u64) as usize;
                 let draw = self.draw_lighting(&mut rng);
                 let loaded = dataset.load(i)?;
+                let stem = loaded.stem;
                 let (image, photo) =
                     fit(loaded.image, loaded.photo, self.side).map_err(|(width, height)| {
                         DataError::FolderSize {
-                            stem: loaded.stem.clone(),
+                            stem: stem.clone(),
                             width,
                             height,
                             side: self.side,
@@ -405,17 +409,7 @@ impl Dataset {
                     photo: &photo,
                     specular_weights,
                 };
-                make_sample(
-                    intrinsics,
-                    &self.maps(draw),
-                    draw,
-                    self.background,
-                    self.factor,
-                )
-                .map_err(|source| DataError::Sample {
-                    stem: loaded.stem,
-                    source,
-                })
+                finish(intrinsics, draw, &stem)
             }
         }
     }

@@ -196,11 +196,18 @@ fn read_manifest(dir: &Path) -> Result<Option<Manifest>, CacheError> {
     }
 }
 
-/// Writes `bytes` to `path` through a temporary file and a rename.
+/// Writes `bytes` to `path` through a temporary file and a rename (`io::write_atomically`).
 fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), CacheError> {
-    let tmp = path.with_extension("partial");
-    fs::write(&tmp, bytes).map_err(io_error(&tmp))?;
-    fs::rename(&tmp, path).map_err(io_error(path))
+    volux_envmap::io::write_atomically(path, |tmp| {
+        fs::write(tmp, bytes).map_err(|source| volux_envmap::EnvMapError::Io {
+            path: tmp.to_path_buf(),
+            source,
+        })
+    })
+    .map_err(|e| CacheError::Corrupt {
+        path: path.to_path_buf(),
+        message: format!("cannot write: {e}"),
+    })
 }
 
 fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), CacheError> {
@@ -510,7 +517,18 @@ mod tests {
             cache.example(1).unwrap().photo,
             other.example(1).unwrap().photo
         );
-        assert!(!dir.path().join("shard-00000.partial").exists());
+        // No temporary files are left behind.
+        let stray = fs::read_dir(dir.path())
+            .unwrap()
+            .filter(|e| {
+                e.as_ref()
+                    .unwrap()
+                    .file_name()
+                    .to_string_lossy()
+                    .starts_with(".tmp")
+            })
+            .count();
+        assert_eq!(stray, 0);
     }
 
     #[test]

@@ -2,6 +2,7 @@
 //! field's gradient, depths lie on the surface, two poses of one head agree, a constant
 //! environment shades uniformly, and the same seed renders the same image.
 
+use volux_envmap::direction::{dot, normalize};
 use volux_envmap::io::tonemap_pixel;
 use volux_envmap::{EnvMap, LightMap, PreconvolveOptions, preconvolve};
 use volux_model::ray_sampling::{camera_basis, camera_position, camera_rays};
@@ -22,15 +23,6 @@ fn fd_gradient(head: &SyntheticHead, p: [f64; 3]) -> [f64; 3] {
         b[k] -= h;
         (head.distance(a) - head.distance(b)) / (2.0 * h)
     })
-}
-
-fn normalize(v: [f64; 3]) -> [f64; 3] {
-    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    v.map(|c| c / l)
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 /// Camera-space normal to world space.
