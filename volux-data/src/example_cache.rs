@@ -80,6 +80,8 @@ pub enum CacheError {
     },
     #[error("{path}: {message}")]
     Corrupt { path: PathBuf, message: String },
+    #[error("{path}: cannot write: {message}")]
+    Write { path: PathBuf, message: String },
     #[error("cache spec: {0}")]
     Spec(String),
     #[error("example {index} is outside the cache's {len} examples")]
@@ -204,9 +206,9 @@ fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), CacheError> {
             source,
         })
     })
-    .map_err(|e| CacheError::Corrupt {
+    .map_err(|e| CacheError::Write {
         path: path.to_path_buf(),
-        message: format!("cannot write: {e}"),
+        message: e.to_string(),
     })
 }
 
