@@ -134,21 +134,8 @@ impl Batch {
                     .ok_or(LightingTensorError::Index(d.map, bank.len()))
             })
             .collect::<Result<_, _>>()?;
-        let exponents = sets[0].exponents();
-        let mut maps = Vec::with_capacity(exponents.len());
-        for n in exponents {
-            let per_example: Vec<&LightMap> = sets
-                .iter()
-                .map(|s| s.get(n).ok_or(LightingTensorError::Exponent(n)))
-                .collect::<Result<_, _>>()?;
-            maps.push(
-                LightMapBatch::new(&per_example, device)
-                    .map_err(|e| LightingTensorError::Model(e.to_string()))?,
-            );
-        }
-        let yaws: Vec<f32> = self.draws.iter().map(|d| d.yaw as f32).collect();
-        let yaw = Tensor::<1>::from_data(TensorData::new(yaws, [self.size]), device);
-        Lighting::new(maps, Some(yaw)).map_err(|e| LightingTensorError::Model(e.to_string()))
+        let yaws: Vec<f64> = self.draws.iter().map(|d| d.yaw).collect();
+        lighting_tensors(&sets, &yaws, device)
     }
 
     /// The batch on `device`.
@@ -168,6 +155,33 @@ impl Batch {
             specular: t(&self.specular, 3, hi),
         }
     }
+}
+
+/// The generator's `Lighting` for one light-map set and environment yaw per batch element.
+pub fn lighting_tensors(
+    sets: &[&LightMapSet],
+    yaws: &[f64],
+    device: &Device,
+) -> Result<Lighting, LightingTensorError> {
+    assert_eq!(sets.len(), yaws.len(), "one yaw per light-map set");
+    let exponents = sets
+        .first()
+        .ok_or(LightingTensorError::Index(0, 0))?
+        .exponents();
+    let mut maps = Vec::with_capacity(exponents.len());
+    for n in exponents {
+        let per_example: Vec<&LightMap> = sets
+            .iter()
+            .map(|s| s.get(n).ok_or(LightingTensorError::Exponent(n)))
+            .collect::<Result<_, _>>()?;
+        maps.push(
+            LightMapBatch::new(&per_example, device)
+                .map_err(|e| LightingTensorError::Model(e.to_string()))?,
+        );
+    }
+    let yaw: Vec<f32> = yaws.iter().map(|&y| y as f32).collect();
+    let yaw = Tensor::<1>::from_data(TensorData::new(yaw, [yaws.len()]), device);
+    Lighting::new(maps, Some(yaw)).map_err(|e| LightingTensorError::Model(e.to_string()))
 }
 
 /// Makes batches `start, start + 1, ...` on a background thread, `prefetch` ahead of the

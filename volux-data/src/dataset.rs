@@ -150,11 +150,16 @@ impl DataConfig {
             path: path.to_path_buf(),
             message: e.to_string(),
         })?;
+        Self::from_text(&text, path)
+    }
+
+    /// [`DataConfig::load`] on the text of the file at `path` (read before, or stored).
+    pub fn from_text(text: &str, path: &Path) -> Result<(DataConfig, String), DataError> {
         let bad = |message: String| DataError::File {
             path: path.to_path_buf(),
             message,
         };
-        let table: toml::Table = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        let table: toml::Table = toml::from_str(text).map_err(|e| bad(e.to_string()))?;
         let data = table
             .get("data")
             .ok_or_else(|| bad("no [data] table".into()))?

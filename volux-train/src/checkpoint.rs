@@ -1,0 +1,231 @@
+//! Checkpoints: one folder per save, `checkpoint-<step>/`, holding the generator, its EMA,
+//! the discriminators, both optimisers' states (burnpack files) and `state.toml` (step, image
+//! count, the non-finite counters, the seed, the config as written). Nothing else is needed to
+//! resume: latents and ray jitter are functions of the seed and the step.
+//!
+//! A checkpoint is written into a hidden `.checkpoint-<step>.partial/` folder and renamed into
+//! place once complete, so a crash mid-write leaves the previous checkpoints untouched; only
+//! the newest `keep` are kept.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use burn::module::Module;
+use burn::optim::ModuleOptimizer;
+use serde::{Deserialize, Serialize};
+use volux_model::generator::Generator;
+
+use crate::networks::Discriminators;
+
+/// Bumped when the layout changes.
+pub const CHECKPOINT_FORMAT: u32 = 1;
+
+const GENERATOR: &str = "generator.bpk";
+const GENERATOR_EMA: &str = "generator_ema.bpk";
+const DISCRIMINATORS: &str = "discriminators.bpk";
+const OPTIMIZER_G: &str = "optimizer_g.bpk";
+const OPTIMIZER_D: &str = "optimizer_d.bpk";
+const STATE: &str = "state.toml";
+const PREFIX: &str = "checkpoint-";
+
+/// Why a checkpoint cannot be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum CheckpointError {
+    #[error("{path}: {message}")]
+    File { path: PathBuf, message: String },
+    #[error("no complete checkpoint in {0}")]
+    None(PathBuf),
+    #[error(
+        "checkpoint {path} was written by a run with other shapes:\n  checkpoint: {checkpoint}\n  config:     {config}"
+    )]
+    Mismatch {
+        path: PathBuf,
+        checkpoint: String,
+        config: String,
+    },
+}
+
+fn file_error(path: &Path, e: impl std::fmt::Display) -> CheckpointError {
+    CheckpointError::File {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// Training progress and what it was trained from (`state.toml`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainState {
+    pub format: u32,
+    /// Steps taken (skipped ones included): the next batch's index.
+    pub step: u64,
+    /// Images trained on (skipped steps excluded): what the schedule follows.
+    pub images: u64,
+    /// Non-finite steps in a row at the time of the save.
+    pub nonfinite_in_row: usize,
+    /// Non-finite steps in all.
+    pub skipped: u64,
+    /// The run's seed (latents and ray jitter of step `s` derive from it and `s`).
+    pub seed: u64,
+    /// `[model]` as TOML: every tensor's shape follows from it.
+    pub shapes: String,
+    /// The discriminators that exist.
+    pub discriminators: Vec<String>,
+    /// The config file's path when training started, and its text.
+    pub config_path: PathBuf,
+    pub config: String,
+}
+
+/// The networks and optimiser states a checkpoint holds.
+pub struct Networks {
+    pub g: Generator,
+    pub ema: Generator,
+    pub d: Discriminators,
+    pub opt_g: ModuleOptimizer,
+    pub opt_d: ModuleOptimizer,
+}
+
+/// The step number in a checkpoint folder's name, if it is one.
+fn step_of(name: &str) -> Option<u64> {
+    name.strip_prefix(PREFIX)?.parse().ok()
+}
+
+/// Complete checkpoints under `root`, oldest first.
+pub fn list(root: &Path) -> Vec<(u64, PathBuf)> {
+    let Ok(entries) = fs::read_dir(root) else {
+        return Vec::new();
+    };
+    let mut found: Vec<(u64, PathBuf)> = entries
+        .filter_map(|e| {
+            let e = e.ok()?;
+            let step = step_of(e.file_name().to_str()?)?;
+            e.path().join(STATE).is_file().then(|| (step, e.path()))
+        })
+        .collect();
+    found.sort();
+    found
+}
+
+/// The newest complete checkpoint under `root`.
+pub fn latest(root: &Path) -> Result<PathBuf, CheckpointError> {
+    list(root)
+        .pop()
+        .map(|(_, p)| p)
+        .ok_or_else(|| CheckpointError::None(root.to_path_buf()))
+}
+
+/// `path` itself if it is a checkpoint, else the newest checkpoint in it (a run folder).
+pub fn resolve(path: &Path) -> Result<PathBuf, CheckpointError> {
+    if path.join(STATE).is_file() {
+        Ok(path.to_path_buf())
+    } else {
+        latest(path)
+    }
+}
+
+/// Writes a checkpoint of `state` under `root` and deletes all but the newest `keep`.
+pub fn save(
+    root: &Path,
+    state: &TrainState,
+    nets: &Networks,
+    keep: usize,
+) -> Result<PathBuf, CheckpointError> {
+    fs::create_dir_all(root).map_err(|e| file_error(root, e))?;
+    let name = format!("{PREFIX}{:08}", state.step);
+    let partial = root.join(format!(".{name}.partial"));
+    let done = root.join(&name);
+    if partial.exists() {
+        fs::remove_dir_all(&partial).map_err(|e| file_error(&partial, e))?;
+    }
+    fs::create_dir(&partial).map_err(|e| file_error(&partial, e))?;
+    let write = || -> Result<(), CheckpointError> {
+        let record = |p: &Path, r: Result<(), burn::store::RecordError>| {
+            r.map_err(|e| file_error(p, format!("{e:?}")))
+        };
+        let p = partial.join(GENERATOR);
+        record(&p, nets.g.clone().save_file(&p))?;
+        let p = partial.join(GENERATOR_EMA);
+        record(&p, nets.ema.clone().save_file(&p))?;
+        let p = partial.join(DISCRIMINATORS);
+        record(&p, nets.d.clone().save_file(&p))?;
+        let p = partial.join(OPTIMIZER_G);
+        record(&p, nets.opt_g.save(&p))?;
+        let p = partial.join(OPTIMIZER_D);
+        record(&p, nets.opt_d.save(&p))?;
+        // The state goes last: a folder with state.toml is complete.
+        let p = partial.join(STATE);
+        let text = toml::to_string(state).map_err(|e| file_error(&p, e))?;
+        fs::write(&p, text).map_err(|e| file_error(&p, e))?;
+        if done.exists() {
+            fs::remove_dir_all(&done).map_err(|e| file_error(&done, e))?;
+        }
+        fs::rename(&partial, &done).map_err(|e| file_error(&done, e))
+    };
+    if let Err(e) = write() {
+        let _ = fs::remove_dir_all(&partial);
+        return Err(e);
+    }
+    let all = list(root);
+    for (_, old) in all.iter().take(all.len().saturating_sub(keep)) {
+        fs::remove_dir_all(old).map_err(|e| file_error(old, e))?;
+    }
+    Ok(done)
+}
+
+/// Reads a checkpoint's `state.toml`.
+pub fn read_state(dir: &Path) -> Result<TrainState, CheckpointError> {
+    let p = dir.join(STATE);
+    let text = fs::read_to_string(&p).map_err(|e| file_error(&p, e))?;
+    let state: TrainState = toml::from_str(&text).map_err(|e| file_error(&p, e))?;
+    if state.format != CHECKPOINT_FORMAT {
+        return Err(file_error(
+            &p,
+            format!(
+                "checkpoint format {} (this program reads {CHECKPOINT_FORMAT})",
+                state.format
+            ),
+        ));
+    }
+    Ok(state)
+}
+
+/// Loads the checkpoint in `dir` into networks of the same shapes (freshly built from the same
+/// config): every parameter and optimiser state is replaced.
+pub fn load(dir: &Path, nets: Networks) -> Result<Networks, CheckpointError> {
+    let module = |name: &str| {
+        let p = dir.join(name);
+        burn::store::ModuleRecord::load(&p).map_err(|e| file_error(&p, format!("{e:?}")))
+    };
+    let apply =
+        |name: &str, e: burn::store::RecordError| file_error(&dir.join(name), format!("{e:?}"));
+    let g = nets
+        .g
+        .try_load_record(module(GENERATOR)?)
+        .map_err(|e| apply(GENERATOR, e))?;
+    let ema = nets
+        .ema
+        .try_load_record(module(GENERATOR_EMA)?)
+        .map_err(|e| apply(GENERATOR_EMA, e))?;
+    let d = nets
+        .d
+        .try_load_record(module(DISCRIMINATORS)?)
+        .map_err(|e| apply(DISCRIMINATORS, e))?;
+    let opt = |o: ModuleOptimizer, name: &str| {
+        let p = dir.join(name);
+        o.load(&p).map_err(|e| file_error(&p, format!("{e:?}")))
+    };
+    Ok(Networks {
+        g,
+        ema,
+        d,
+        opt_g: opt(nets.opt_g, OPTIMIZER_G)?,
+        opt_d: opt(nets.opt_d, OPTIMIZER_D)?,
+    })
+}
+
+/// Loads only the EMA generator (what sampling needs) into `ema`.
+pub fn load_ema(dir: &Path, ema: Generator) -> Result<Generator, CheckpointError> {
+    let p = dir.join(GENERATOR_EMA);
+    ema.try_load_file(&p)
+        .map_err(|e| file_error(&p, format!("{e:?}")))
+}

@@ -1,0 +1,379 @@
+//! Training configs: one TOML file holds `[model]`, `[train]`, `[schedule]`, `[loss]`,
+//! `[output]` and `[data]` (read by [`volux_data::dataset::DataConfig::load`]). Unknown keys,
+//! wrong types and impossible values are errors naming the file and the key.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use volux_data::dataset::{DataConfig, DataError};
+use volux_model::discriminator::DiscriminatorConfig;
+use volux_model::generator::GeneratorConfig;
+use volux_model::presets::{DiscriminatorRole, Preset};
+
+use crate::losses::LossWeights;
+use crate::schedule::ScheduleConfig;
+
+/// A config that cannot be used, with the file it came from.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{path}: {message}")]
+    File { path: PathBuf, message: String },
+}
+
+/// `[model]`: a preset size, optionally with fewer or more samples per ray.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelConfig {
+    /// `small`, `paper128` or `paper256`.
+    pub preset: String,
+    /// Stratified samples per ray (the preset's if absent).
+    #[serde(default)]
+    pub stratified: Option<usize>,
+    /// Importance samples per ray (the preset's if absent).
+    #[serde(default)]
+    pub importance: Option<usize>,
+}
+
+impl ModelConfig {
+    /// The preset this config names.
+    pub fn preset(&self) -> Result<Preset, String> {
+        match self.preset.as_str() {
+            "small" => Ok(Preset::Small),
+            "paper128" => Ok(Preset::Paper128),
+            "paper256" => Ok(Preset::Paper256),
+            other => Err(format!(
+                "model.preset = \"{other}\": expected \"small\", \"paper128\" or \"paper256\""
+            )),
+        }
+    }
+
+    /// The generator's sizes.
+    pub fn generator(&self) -> Result<GeneratorConfig, String> {
+        let mut g = self.preset()?.generator();
+        if let Some(n) = self.stratified {
+            g.renderer.stratified = n;
+        }
+        if let Some(n) = self.importance {
+            g.renderer.importance = n;
+        }
+        if g.renderer.stratified < 2 {
+            return Err(format!(
+                "model.stratified = {} must be at least 2",
+                g.renderer.stratified
+            ));
+        }
+        g.validate().map_err(|e| format!("[model]: {e}"))?;
+        Ok(g)
+    }
+
+    /// The sizes of one discriminator.
+    pub fn discriminator(&self, role: DiscriminatorRole) -> Result<DiscriminatorConfig, String> {
+        Ok(self.preset()?.discriminator(role))
+    }
+}
+
+/// `[train]`: batch, optimisers, R1, EMA, the non-finite guard.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OptimConfig {
+    /// Seed of latents, ray jitter and initial weights.
+    pub seed: u64,
+    /// Images per step.
+    pub batch: usize,
+    /// Adam learning rate of the generator.
+    pub lr_g: f64,
+    /// Adam learning rate of every discriminator.
+    pub lr_d: f64,
+    pub beta1: f64,
+    pub beta2: f64,
+    /// R1 weight `gamma` (StyleGAN2's `r1_gamma`).
+    pub r1_gamma: f64,
+    /// R1 runs every `r1_interval` discriminator steps (lazy regularisation); 0 turns it off.
+    pub r1_interval: usize,
+    /// Half-life of the generator's moving average, in thousands of images.
+    pub ema_kimg: f64,
+    /// The half-life is at most `ema_rampup` times the images seen so far (0: no ramp-up).
+    pub ema_rampup: f64,
+    /// Stop after this many non-finite steps in a row (each is skipped).
+    pub max_nonfinite: usize,
+    /// Batches prepared ahead of the step on a background thread.
+    pub prefetch: usize,
+}
+
+impl Default for OptimConfig {
+    fn default() -> Self {
+        OptimConfig {
+            seed: 0,
+            batch: 24,
+            lr_g: 0.0022,
+            lr_d: 0.0025,
+            beta1: 0.0,
+            beta2: 0.99,
+            r1_gamma: 1.0,
+            r1_interval: 16,
+            ema_kimg: 10.0,
+            ema_rampup: 0.05,
+            max_nonfinite: 10,
+            prefetch: 2,
+        }
+    }
+}
+
+/// `[output]`: how often to log, draw the sample grid and checkpoint.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OutputConfig {
+    /// Steps per metrics line (losses are averaged over them).
+    pub log_every: u64,
+    /// Thousands of images between sample grids (0: only at the end).
+    pub grid_kimg: f64,
+    /// Latent seeds of the grid's columns.
+    pub grid_seeds: Vec<u64>,
+    /// Thousands of images between checkpoints (0: only at the end).
+    pub checkpoint_kimg: f64,
+    /// Checkpoints kept (the oldest are deleted).
+    pub keep: usize,
+    /// Stop after this many minutes of training (0: run the whole schedule), checkpointing first.
+    pub minutes: f64,
+}
+
+impl Default for OutputConfig {
+    fn default() -> Self {
+        OutputConfig {
+            log_every: 10,
+            grid_kimg: 5.0,
+            grid_seeds: (0..8).collect(),
+            checkpoint_kimg: 10.0,
+            keep: 3,
+            minutes: 0.0,
+        }
+    }
+}
+
+/// Everything a training config holds except `[data]`.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ConfigFile {
+    model: ModelConfig,
+    #[serde(default)]
+    train: OptimConfig,
+    #[serde(default)]
+    schedule: ScheduleConfig,
+    #[serde(default)]
+    loss: LossWeights,
+    #[serde(default)]
+    output: OutputConfig,
+    /// Read separately by `DataConfig::load`.
+    data: toml::Value,
+}
+
+/// A checked training config.
+#[derive(Clone, Debug)]
+pub struct TrainConfig {
+    pub model: ModelConfig,
+    pub train: OptimConfig,
+    pub schedule: ScheduleConfig,
+    pub loss: LossWeights,
+    pub output: OutputConfig,
+    pub data: DataConfig,
+    /// The `[data]` table as hashed for example caches.
+    pub data_hashed: String,
+    /// The file as written (stored in checkpoints).
+    pub text: String,
+    /// Where it was read from.
+    pub path: PathBuf,
+}
+
+impl TrainConfig {
+    /// Reads and checks `path`.
+    pub fn load(path: &Path) -> Result<TrainConfig, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|e| ConfigError::File {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+        Self::from_text(text, path)
+    }
+
+    /// Checks the text of a config file that lives (or lived) at `path`; relative paths in
+    /// `[data]` are taken relative to its folder.
+    pub fn from_text(text: String, path: &Path) -> Result<TrainConfig, ConfigError> {
+        let bad = |message: String| ConfigError::File {
+            path: path.to_path_buf(),
+            message,
+        };
+        let (data, data_hashed) = DataConfig::from_text(&text, path).map_err(|e| match e {
+            DataError::File { message, .. } => bad(message),
+            other => bad(other.to_string()),
+        })?;
+        let file: ConfigFile = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        let config = TrainConfig {
+            model: file.model,
+            train: file.train,
+            schedule: file.schedule,
+            loss: file.loss,
+            output: file.output,
+            data,
+            data_hashed,
+            text,
+            path: path.to_path_buf(),
+        };
+        config.validate().map_err(bad)?;
+        Ok(config)
+    }
+
+    /// The generator's sizes (checked by `load`).
+    pub fn generator(&self) -> GeneratorConfig {
+        self.model.generator().expect("validated")
+    }
+
+    /// Upsampling blocks of the generator.
+    pub fn blocks(&self) -> usize {
+        let g = self.generator();
+        (g.output_resolution / g.volume_resolution).trailing_zeros() as usize
+    }
+
+    /// Every check that needs more than one key.
+    fn validate(&self) -> Result<(), String> {
+        let g = self.model.generator()?;
+        let t = &self.train;
+        if t.batch == 0 {
+            return Err("train.batch must be at least 1".into());
+        }
+        for role in DiscriminatorRole::ALL {
+            let group = self.model.discriminator(role)?.mbstd_group;
+            if !t.batch.is_multiple_of(group.min(t.batch)) {
+                return Err(format!(
+                    "train.batch = {} is not divisible by the discriminators' minibatch-std group of {group}",
+                    t.batch
+                ));
+            }
+        }
+        for (key, v) in [
+            ("lr_g", t.lr_g),
+            ("lr_d", t.lr_d),
+            ("r1_gamma", t.r1_gamma),
+            ("ema_kimg", t.ema_kimg),
+            ("ema_rampup", t.ema_rampup),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("train.{key} = {v} must be finite and >= 0"));
+            }
+        }
+        for (key, v) in [("beta1", t.beta1), ("beta2", t.beta2)] {
+            if !(0.0..1.0).contains(&v) {
+                return Err(format!("train.{key} = {v} must be in [0, 1)"));
+            }
+        }
+        if t.max_nonfinite == 0 {
+            return Err("train.max_nonfinite must be at least 1".into());
+        }
+        self.loss.validate()?;
+        self.schedule.validate(self.blocks())?;
+        let o = &self.output;
+        for (key, v) in [
+            ("grid_kimg", o.grid_kimg),
+            ("checkpoint_kimg", o.checkpoint_kimg),
+            ("minutes", o.minutes),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("output.{key} = {v} must be finite and >= 0"));
+            }
+        }
+        if o.keep == 0 {
+            return Err("output.keep must be at least 1".into());
+        }
+        if o.log_every == 0 {
+            return Err("output.log_every must be at least 1".into());
+        }
+        if o.grid_seeds.is_empty() {
+            return Err("output.grid_seeds must name at least one seed".into());
+        }
+        let d = &self.data;
+        if d.resolution != g.output_resolution || d.volume_resolution != g.volume_resolution {
+            return Err(format!(
+                "data.resolution = {} and data.volume_resolution = {} must equal the {} model's {} and {}",
+                d.resolution,
+                d.volume_resolution,
+                self.model.preset,
+                g.output_resolution,
+                g.volume_resolution
+            ));
+        }
+        Ok(())
+    }
+
+    /// The table that fixes every tensor's shape (compared when resuming).
+    pub fn shapes(&self) -> String {
+        toml::to_string(&self.model).unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TINY: &str = r#"
+[model]
+preset = "small"
+
+[train]
+batch = 4
+
+[data]
+resolution = 64
+volume_resolution = 32
+"#;
+
+    fn load(text: &str) -> Result<TrainConfig, String> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.toml");
+        std::fs::write(&path, text).unwrap();
+        TrainConfig::load(&path).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn a_small_config_loads_with_the_paper_defaults() {
+        let c = load(TINY).unwrap();
+        assert_eq!(c.train.batch, 4);
+        assert_eq!((c.train.lr_g, c.train.lr_d), (0.0022, 0.0025));
+        assert_eq!((c.train.beta1, c.train.beta2), (0.0, 0.99));
+        assert_eq!(c.loss, LossWeights::default());
+        assert_eq!(c.blocks(), 1);
+    }
+
+    #[test]
+    fn bad_configs_name_the_file_and_the_key() {
+        let cases = [
+            (
+                TINY.replace("batch = 4", "batch = 4\nbatchsize = 2"),
+                "batchsize",
+            ),
+            (TINY.replace("batch = 4", "batch = \"four\""), "batch"),
+            (TINY.replace("batch = 4", "batch = 6"), "train.batch = 6"),
+            (TINY.replace("batch = 4", "lr_g = -1.0"), "train.lr_g"),
+            (TINY.replace("batch = 4", "beta2 = 1.0"), "train.beta2"),
+            (TINY.replace("\"small\"", "\"huge\""), "model.preset"),
+            (
+                TINY.replace("resolution = 64", "resolution = 128"),
+                "data.resolution",
+            ),
+            (format!("{TINY}\n[loss]\nphoto = -0.5\n"), "loss.photo"),
+            (format!("{TINY}\n[loss]\nphotos = 0.5\n"), "photos"),
+            (
+                format!("{TINY}\n[schedule]\nstage1_kimg = 1.0\nfade_kimg = 2.0\n"),
+                "fade_kimg",
+            ),
+            (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
+            (
+                format!("{TINY}\n[data.source]\nkind = \"synthetic\"\nidentity = 3\n"),
+                "identity",
+            ),
+            (TINY.replace("[model]\npreset = \"small\"", ""), "model"),
+        ];
+        for (text, key) in cases {
+            let e = load(&text).expect_err(key);
+            assert!(e.contains("run.toml"), "{e}");
+            assert!(e.contains(key), "expected `{key}` in: {e}");
+        }
+    }
+}

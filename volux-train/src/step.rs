@@ -1,0 +1,300 @@
+//! One training step (paper section 3.4): a generator phase (every active adversarial term
+//! plus the path loss, one Adam step of `G`), then a discriminator phase on the same fakes,
+//! detached (one Adam step of every active discriminator, with lazy R1 on reals every
+//! `r1_interval` steps). A step whose loss or updated weights are not finite changes nothing.
+//!
+//! Fakes are rendered with the real batch's poses and lighting, so both discriminators of a
+//! pair see the same distribution of cameras and environments. The discriminator phase reuses
+//! the generator phase's fakes instead of rendering a second batch: the generator is by far
+//! the dearer network, and the fakes differ from StyleGAN2's only by one generator update.
+
+use std::collections::BTreeMap;
+
+use burn::module::Module;
+use burn::optim::{GradientsParams, ModuleOptimizer};
+use burn::tensor::Tensor;
+use volux_data::batch::BatchTensors;
+use volux_model::discriminator::Discriminator;
+use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
+use volux_model::upsampler::bilinear_upsample;
+use volux_model::volume_rendering::Lighting;
+
+use crate::losses::{
+    LossWeights, discriminator_loss, generator_loss, lazy_r1, path_loss, shading_condition,
+};
+use crate::networks::{Discriminators, all_finite};
+use crate::schedule::ActiveTerms;
+
+/// What one step needs besides the networks.
+pub struct StepInputs<'a> {
+    /// Latents `[batch, z_dim]` on the training device.
+    pub z: Tensor<2>,
+    /// One `(yaw, pitch)` per element (the real batch's).
+    pub poses: &'a [(f64, f64)],
+    /// The real batch's lighting (needed only when the relit image is).
+    pub lighting: Option<&'a Lighting>,
+    /// The reals on the training device.
+    pub reals: &'a BatchTensors,
+    /// The dataset's background as an albedo.
+    pub background: [f32; 3],
+    pub active: ActiveTerms,
+    pub weights: LossWeights,
+    /// Upsampler fade-in weights (`None`: fully grown).
+    pub fade: Option<Vec<f64>>,
+    /// Whether this step adds lazy R1 (and its interval).
+    pub r1: Option<(f64, usize)>,
+    pub lr_g: f64,
+    pub lr_d: f64,
+    /// Test hook: make the generator loss NaN.
+    pub poison: bool,
+}
+
+/// What a step did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StepOutcome {
+    /// Every loss term's value (unweighted), by name.
+    pub losses: BTreeMap<&'static str, f64>,
+    /// `None` if the step was applied, else why it was skipped.
+    pub skipped: Option<String>,
+}
+
+/// The generated layers the discriminators look at.
+struct Fakes {
+    albedo_lo: Option<Tensor<4>>,
+    albedo_hi: Option<Tensor<4>>,
+    normals: Option<Tensor<4>>,
+    shading: Option<Tensor<4>>,
+    relit: Option<Tensor<4>>,
+}
+
+impl Fakes {
+    fn detach(&self) -> Fakes {
+        let d = |t: &Option<Tensor<4>>| t.as_ref().map(|t| t.clone().detach());
+        Fakes {
+            albedo_lo: d(&self.albedo_lo),
+            albedo_hi: d(&self.albedo_hi),
+            normals: d(&self.normals),
+            shading: d(&self.shading),
+            relit: d(&self.relit),
+        }
+    }
+}
+
+/// The names a term's losses are logged under: generator, discriminator, R1.
+type TermNames = [&'static str; 3];
+
+const ALBEDO_LO: TermNames = ["G_albedo_lo", "D_albedo_lo", "R1_albedo_lo"];
+const ALBEDO_HI: TermNames = ["G_albedo_hi", "D_albedo_hi", "R1_albedo_hi"];
+const GEOMETRY: TermNames = ["G_geometry", "D_geometry", "R1_geometry"];
+const SHADING: TermNames = ["G_shading", "D_shading", "R1_shading"];
+const PHOTO: TermNames = ["G_photo", "D_photo", "R1_photo"];
+
+/// An active discriminator with what it judges: `(names, D, fake, real, weight)`.
+type Pair<'a> = (
+    TermNames,
+    &'a Discriminator,
+    Tensor<4>,
+    Option<Tensor<4>>,
+    f64,
+);
+
+/// Every active discriminator with its fake and (if given) real inputs.
+fn pairs<'a>(
+    d: &'a Discriminators,
+    fakes: &Fakes,
+    reals: Option<&BatchTensors>,
+    w: &LossWeights,
+) -> Vec<Pair<'a>> {
+    let real_shading =
+        reals.map(|r| shading_condition(r.relit.clone(), r.diffuse.clone(), r.specular.clone()));
+    let entries = [
+        (
+            ALBEDO_LO,
+            &d.albedo_lo,
+            &fakes.albedo_lo,
+            reals.map(|r| r.albedo_lo.clone()),
+            w.albedo,
+        ),
+        (
+            ALBEDO_HI,
+            &d.albedo_hi,
+            &fakes.albedo_hi,
+            reals.map(|r| r.albedo_hi.clone()),
+            w.albedo,
+        ),
+        (
+            GEOMETRY,
+            &d.geometry,
+            &fakes.normals,
+            reals.map(|r| r.normals_lo.clone()),
+            w.geometry,
+        ),
+        (SHADING, &d.shading, &fakes.shading, real_shading, w.shading),
+        (
+            PHOTO,
+            &d.photo,
+            &fakes.relit,
+            reals.map(|r| r.photo.clone()),
+            w.photo,
+        ),
+    ];
+    entries
+        .into_iter()
+        .filter_map(|(name, d, fake, real, weight)| {
+            Some((name, d.as_ref()?, fake.clone()?, real, weight))
+        })
+        .collect()
+}
+
+/// `acc += t`, starting from nothing.
+fn add(acc: &mut Option<Tensor<1>>, t: Tensor<1>) {
+    *acc = Some(match acc.take() {
+        Some(a) => a + t,
+        None => t,
+    });
+}
+
+fn scalar(t: &Tensor<1>) -> f64 {
+    let v: f32 = t.clone().into_scalar();
+    v as f64
+}
+
+/// Runs the generator for the active terms and returns the fakes and the path loss.
+fn generate(
+    g: &Generator,
+    inputs: &StepInputs,
+) -> Result<(Fakes, Option<Tensor<1>>), GeneratorError> {
+    let a = inputs.active;
+    let albedo = a.albedo || a.path;
+    let wants = GeneratorWants {
+        albedo_lo: albedo,
+        normals_lo: a.geometry,
+        shading_lo: a.shading,
+        features_lo: false,
+        depth: false,
+        albedo_hi: albedo,
+        relit: a.needs_relit(),
+    };
+    let out = g.forward(
+        inputs.z.clone(),
+        inputs.poses,
+        inputs.lighting.filter(|_| wants.relit),
+        inputs.background,
+        wants,
+        inputs.fade.as_deref(),
+        true,
+    )?;
+    let path = match (a.path, &out.albedo_lo, &out.albedo_hi) {
+        (true, Some(lo), Some(hi)) => Some(path_loss(lo.clone(), hi.clone())),
+        _ => None,
+    };
+    let shading = match (a.shading, &out.relit, &out.diffuse_lo, &out.specular_lo) {
+        (true, Some(relit), Some(d), Some(s)) => {
+            let f = g.upsampler.factor();
+            Some(shading_condition(
+                relit.clone(),
+                bilinear_upsample(d.clone(), f),
+                bilinear_upsample(s.clone(), f),
+            ))
+        }
+        _ => None,
+    };
+    let fakes = Fakes {
+        albedo_lo: out.albedo_lo.filter(|_| a.albedo),
+        albedo_hi: out.albedo_hi.filter(|_| a.albedo),
+        normals: out.normals_lo,
+        shading,
+        relit: out.relit.filter(|_| a.photo),
+    };
+    Ok((fakes, path))
+}
+
+/// One step: updates `g`, `d` and their optimisers in place unless something is not finite.
+pub fn train_step(
+    g: &mut Generator,
+    d: &mut Discriminators,
+    opt_g: &mut ModuleOptimizer,
+    opt_d: &mut ModuleOptimizer,
+    inputs: &StepInputs,
+) -> Result<StepOutcome, GeneratorError> {
+    let mut outcome = StepOutcome::default();
+    let w = inputs.weights;
+
+    // Generator phase: the discriminators are frozen (no weight gradients are computed).
+    let (fakes, path) = generate(g, inputs)?;
+    let frozen = Module::no_grad(d.clone());
+    let mut g_loss: Option<Tensor<1>> = None;
+    for ([g_name, ..], disc, fake, _, weight) in pairs(&frozen, &fakes, None, &w) {
+        let l = generator_loss(disc.forward(fake));
+        outcome.losses.insert(g_name, scalar(&l));
+        add(&mut g_loss, l.mul_scalar(weight));
+    }
+    if let Some(p) = path {
+        outcome.losses.insert("path", scalar(&p));
+        add(&mut g_loss, p.mul_scalar(w.path));
+    }
+    let Some(mut g_loss) = g_loss else {
+        return Ok(outcome);
+    };
+    if inputs.poison {
+        g_loss = g_loss.mul_scalar(f64::NAN);
+    }
+    let g_total = scalar(&g_loss);
+    outcome.losses.insert("G_total", g_total);
+    if !g_total.is_finite() {
+        outcome.skipped = Some(format!("generator loss is {g_total}"));
+        return Ok(outcome);
+    }
+    let mut grads = g_loss.backward();
+    let grads = GradientsParams::from_module(&mut grads, &*g);
+    let (g_before, opt_g_before) = (g.clone(), opt_g.clone());
+    *g = opt_g.step(inputs.lr_g, g.clone(), grads);
+    if !all_finite(&*g) {
+        *g = g_before;
+        *opt_g = opt_g_before;
+        outcome.skipped = Some("generator weights became non-finite".into());
+        return Ok(outcome);
+    }
+
+    // Discriminator phase on the same fakes, detached.
+    let fakes = fakes.detach();
+    let mut d_loss: Option<Tensor<1>> = None;
+    for ([_, d_name, r1_name], disc, fake, real, weight) in pairs(d, &fakes, Some(inputs.reals), &w)
+    {
+        let real = real.expect("reals given");
+        let (real_logits, r1) = match inputs.r1 {
+            Some((gamma, interval)) if gamma > 0.0 => {
+                let (logits, penalty) = lazy_r1(disc, real, gamma, interval);
+                (logits, Some(penalty))
+            }
+            _ => (disc.forward(real), None),
+        };
+        let l = discriminator_loss(real_logits, disc.forward(fake));
+        outcome.losses.insert(d_name, scalar(&l));
+        let mut term = l;
+        if let Some(r1) = r1 {
+            outcome.losses.insert(r1_name, scalar(&r1));
+            term = term + r1;
+        }
+        add(&mut d_loss, term.mul_scalar(weight));
+    }
+    let Some(d_loss) = d_loss else {
+        return Ok(outcome);
+    };
+    let d_total = scalar(&d_loss);
+    outcome.losses.insert("D_total", d_total);
+    if !d_total.is_finite() {
+        outcome.skipped = Some(format!("discriminator loss is {d_total}"));
+        return Ok(outcome);
+    }
+    let mut grads = d_loss.backward();
+    let grads = GradientsParams::from_module(&mut grads, &*d);
+    let (d_before, opt_d_before) = (d.clone(), opt_d.clone());
+    *d = opt_d.step(inputs.lr_d, d.clone(), grads);
+    if !all_finite(&*d) {
+        *d = d_before;
+        *opt_d = opt_d_before;
+        outcome.skipped = Some("discriminator weights became non-finite".into());
+    }
+    Ok(outcome)
+}

@@ -1,0 +1,481 @@
+//! The training loop: builds (or resumes) the networks and optimisers of a config, feeds them
+//! batches in order, follows the schedule, keeps the EMA, logs metrics, draws the sample grid
+//! and checkpoints. Every step is a pure function of the checkpointed state, the config and
+//! the step number (batch `s` is examples `s * batch ..`, latents and ray jitter are seeded by
+//! `(seed, s)`), so a resumed run computes the same losses as one that never stopped.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use burn::module::Module;
+use burn::optim::AdamConfig;
+use burn::tensor::Device;
+use volux_data::batch::{BatchLoader, lighting_tensors};
+use volux_data::dataset::{DataError, Examples};
+use volux_envmap::LightMapSet;
+use volux_envmap::report::SplitMix64;
+use volux_model::backend::{BackendError, BackendKind};
+use volux_model::generator::{Generator, GeneratorError};
+
+use crate::checkpoint::{self, CHECKPOINT_FORMAT, CheckpointError, Networks, TrainState};
+use crate::config::TrainConfig;
+use crate::metrics::{Averages, MetricsLine, MetricsLog, peak_rss_mib};
+use crate::networks::{Discriminators, ema_beta, materialize, update_ema};
+use crate::sampling;
+use crate::schedule::Stage;
+use crate::step::{StepInputs, train_step};
+
+/// Why training stopped with an error.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    #[error(transparent)]
+    Config(#[from] crate::config::ConfigError),
+    #[error(transparent)]
+    Backend(#[from] BackendError),
+    #[error(transparent)]
+    Data(#[from] DataError),
+    #[error("generator: {0}")]
+    Model(#[from] GeneratorError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    #[error("{path}: {message}")]
+    Io { path: PathBuf, message: String },
+    #[error(
+        "{count} steps in a row had non-finite losses or weights (last: {reason}); stopped at step {step}. The last good checkpoint is {}",
+        last_good.as_ref().map_or("none (no checkpoint was written)".to_string(), |p| p.display().to_string())
+    )]
+    NonFinite {
+        count: usize,
+        reason: String,
+        step: u64,
+        last_good: Option<PathBuf>,
+    },
+}
+
+fn io_error(path: &Path, e: impl std::fmt::Display) -> TrainError {
+    TrainError::Io {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// How to run a config.
+#[derive(Clone, Debug)]
+pub struct TrainOptions {
+    pub backend: BackendKind,
+    /// The run folder: checkpoints, grids, metrics.
+    pub out: PathBuf,
+    /// Continue from the newest checkpoint in `out` (an error if there is none).
+    pub resume: bool,
+    /// Stop after this many steps of this invocation (a checkpoint is written first).
+    pub max_steps: Option<u64>,
+}
+
+/// What one step reported.
+#[derive(Clone, Debug)]
+pub struct StepReport {
+    pub step: u64,
+    pub images: u64,
+    pub total_images: u64,
+    pub stage: Stage,
+    pub fade: Vec<f64>,
+    pub losses: BTreeMap<&'static str, f64>,
+    pub seconds: f64,
+    pub skipped: Option<String>,
+}
+
+/// What the loop tells its caller as it goes.
+#[derive(Clone, Debug)]
+pub enum Event {
+    Step(StepReport),
+    Metrics(MetricsLine),
+    Grid(PathBuf),
+    Checkpoint(PathBuf),
+}
+
+/// Why [`Trainer::run`] returned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Finish {
+    /// The schedule is complete.
+    Done,
+    /// `max_steps` were taken.
+    Steps,
+    /// `output.minutes` ran out.
+    Time,
+}
+
+/// A training run in progress.
+pub struct Trainer {
+    config: TrainConfig,
+    options: TrainOptions,
+    device: Device,
+    nets: Networks,
+    state: TrainState,
+    lights: Arc<Vec<LightMapSet>>,
+    examples: Examples,
+    loader: Option<BatchLoader<DataError>>,
+    metrics: MetricsLog,
+    averages: Averages,
+    last_checkpoint: Option<PathBuf>,
+    poisoned: Vec<u64>,
+}
+
+/// Mixes the run's seed with a step number and a purpose.
+fn derived_seed(seed: u64, step: u64, purpose: u64) -> u64 {
+    let mut rng = SplitMix64::new(seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ purpose);
+    rng.next_u64()
+}
+
+impl Trainer {
+    /// Builds the networks of `config` (or loads the newest checkpoint of `options.out` when
+    /// resuming), the data and the logs.
+    pub fn new(config: TrainConfig, options: TrainOptions) -> Result<Trainer, TrainError> {
+        let device = options.backend.device()?.autodiff();
+        std::fs::create_dir_all(&options.out).map_err(|e| io_error(&options.out, e))?;
+        let t = &config.train;
+        // The backend's random generator is process-wide: one run per process is reproducible.
+        device.seed(t.seed);
+        let g = config.generator().init(&device)?;
+        materialize(&g);
+        let d = Discriminators::init(&config, &device);
+        materialize(&d);
+        let ema = g.valid();
+        let adam = || {
+            AdamConfig::new()
+                .with_beta_1(t.beta1 as f32)
+                .with_beta_2(t.beta2 as f32)
+                .with_epsilon(1e-8)
+                .init()
+        };
+        let mut nets = Networks {
+            g,
+            ema,
+            d,
+            opt_g: adam(),
+            opt_d: adam(),
+        };
+        let config_path = std::fs::canonicalize(&config.path).unwrap_or(config.path.clone());
+        let mut state = TrainState {
+            format: CHECKPOINT_FORMAT,
+            step: 0,
+            images: 0,
+            nonfinite_in_row: 0,
+            skipped: 0,
+            seed: t.seed,
+            shapes: config.shapes(),
+            discriminators: nets.d.names().iter().map(|s| s.to_string()).collect(),
+            config_path,
+            config: config.text.clone(),
+        };
+        let mut last_checkpoint = None;
+        if options.resume {
+            let dir = checkpoint::latest(&options.out)?;
+            let saved = checkpoint::read_state(&dir)?;
+            if saved.shapes != state.shapes || saved.discriminators != state.discriminators {
+                return Err(CheckpointError::Mismatch {
+                    path: dir,
+                    checkpoint: format!(
+                        "{} discriminators {:?}",
+                        saved.shapes.trim().replace('\n', ", "),
+                        saved.discriminators
+                    ),
+                    config: format!(
+                        "{} discriminators {:?}",
+                        state.shapes.trim().replace('\n', ", "),
+                        state.discriminators
+                    ),
+                }
+                .into());
+            }
+            nets = checkpoint::load(&dir, nets)?;
+            tracing::info!(
+                "resuming from {} (step {}, {:.1} kimg)",
+                dir.display(),
+                saved.step,
+                saved.images as f64 / 1000.0
+            );
+            state = TrainState {
+                config_path: state.config_path,
+                config: state.config,
+                ..saved
+            };
+            last_checkpoint = Some(dir);
+        }
+        let bank = config.data.light_bank()?;
+        let examples = Examples::open(&config.data, &config.data_hashed, &bank)?;
+        let lights = Arc::new(bank.sets().to_vec());
+        let metrics_path = options.out.join("metrics.jsonl");
+        let metrics =
+            MetricsLog::open(&metrics_path, state.step).map_err(|e| io_error(&metrics_path, e))?;
+        Ok(Trainer {
+            config,
+            options,
+            device,
+            nets,
+            state,
+            lights,
+            examples,
+            loader: None,
+            metrics,
+            averages: Averages::default(),
+            last_checkpoint,
+            poisoned: Vec::new(),
+        })
+    }
+
+    pub fn state(&self) -> &TrainState {
+        &self.state
+    }
+
+    pub fn config(&self) -> &TrainConfig {
+        &self.config
+    }
+
+    /// The EMA generator (on the backend's device without autodiff).
+    pub fn ema(&self) -> &Generator {
+        &self.nets.ema
+    }
+
+    /// Images in the whole schedule.
+    pub fn total_images(&self) -> u64 {
+        let s = &self.config.schedule;
+        ((s.stage1_kimg + s.stage2_kimg) * 1000.0).round() as u64
+    }
+
+    /// Test hook: the generator loss of these steps is made NaN.
+    #[doc(hidden)]
+    pub fn poison_steps(&mut self, steps: &[u64]) {
+        self.poisoned = steps.to_vec();
+    }
+
+    /// Takes one step on the next batch.
+    pub fn step(&mut self) -> Result<StepReport, TrainError> {
+        let started = Instant::now();
+        let c = &self.config;
+        let batch_size = c.train.batch;
+        let loader = self.loader.get_or_insert_with(|| {
+            self.examples
+                .loader(self.state.step, batch_size, c.train.prefetch)
+        });
+        let batch = loader
+            .next_batch()
+            .ok_or_else(|| DataError::Config("the batch loader stopped".into()))??;
+        let (step, images) = (self.state.step, self.state.images);
+        let stage = c.schedule.stage(images);
+        let active = c.schedule.active(images, &c.loss);
+        let blocks = c.blocks();
+        let fade = c.schedule.fade(images, blocks);
+        let lighting = if active.needs_relit() {
+            let draws: Vec<&LightMapSet> =
+                batch.draws.iter().map(|d| &self.lights[d.map]).collect();
+            let yaws: Vec<f64> = batch.draws.iter().map(|d| d.yaw).collect();
+            Some(
+                lighting_tensors(&draws, &yaws, &self.device)
+                    .map_err(|e| DataError::Lighting(e.to_string()))?,
+            )
+        } else {
+            None
+        };
+        let reals = batch.to_tensors(&self.device);
+        let seeds: Vec<u64> = (0..batch_size as u64)
+            .map(|i| derived_seed(c.train.seed, step, i))
+            .collect();
+        let z = sampling::latents(&seeds, c.generator().mapping.z_dim, &self.device);
+        self.device.seed(derived_seed(c.train.seed, step, u64::MAX));
+        let interval = c.train.r1_interval;
+        let inputs = StepInputs {
+            z,
+            poses: &batch.poses,
+            lighting: lighting.as_ref(),
+            reals: &reals,
+            background: c.data.albedo_background(),
+            active,
+            weights: c.loss,
+            fade: (stage == Stage::One).then(|| fade.clone()),
+            r1: (interval > 0 && step.is_multiple_of(interval as u64))
+                .then_some((c.train.r1_gamma, interval)),
+            lr_g: c.train.lr_g,
+            lr_d: c.train.lr_d,
+            poison: self.poisoned.contains(&step),
+        };
+        let n = &mut self.nets;
+        let outcome = train_step(&mut n.g, &mut n.d, &mut n.opt_g, &mut n.opt_d, &inputs)?;
+        self.state.step += 1;
+        if outcome.skipped.is_some() {
+            self.state.skipped += 1;
+            self.state.nonfinite_in_row += 1;
+        } else {
+            self.state.nonfinite_in_row = 0;
+            self.state.images += batch_size as u64;
+            let beta = ema_beta(
+                batch_size,
+                self.state.images,
+                c.train.ema_kimg,
+                c.train.ema_rampup,
+            );
+            let ema = std::mem::replace(&mut n.ema, n.g.valid());
+            n.ema = update_ema(ema, &n.g.valid(), beta);
+            self.averages.add(&outcome.losses);
+        }
+        Ok(StepReport {
+            step,
+            images: self.state.images,
+            total_images: self.total_images(),
+            stage,
+            fade,
+            losses: outcome.losses,
+            seconds: started.elapsed().as_secs_f64(),
+            skipped: outcome.skipped,
+        })
+    }
+
+    /// Writes a checkpoint of the current state.
+    pub fn checkpoint(&mut self) -> Result<PathBuf, TrainError> {
+        let path = checkpoint::save(
+            &self.options.out,
+            &self.state,
+            &self.nets,
+            self.config.output.keep,
+        )?;
+        self.last_checkpoint = Some(path.clone());
+        Ok(path)
+    }
+
+    /// Renders the EMA generator at the grid seeds (frontal, under the first environment) and
+    /// writes `grids/grid-<images>.png`.
+    pub fn write_grid(&self) -> Result<PathBuf, TrainError> {
+        let c = &self.config;
+        let ema = &self.nets.ema;
+        let device = self.device.clone().inner();
+        let seeds = &c.output.grid_seeds;
+        let z = sampling::latents(seeds, c.generator().mapping.z_dim, &device);
+        let sets: Vec<&LightMapSet> = seeds.iter().map(|_| &self.lights[0]).collect();
+        let lighting = lighting_tensors(&sets, &vec![0.0; seeds.len()], &device)
+            .map_err(|e| DataError::Lighting(e.to_string()))?;
+        let poses = vec![(0.0, 0.0); seeds.len()];
+        let layers =
+            sampling::render_layers(ema, z, &poses, &lighting, c.data.albedo_background())?;
+        let sheet = sampling::grid(&layers);
+        let dir = self.options.out.join("grids");
+        std::fs::create_dir_all(&dir).map_err(|e| io_error(&dir, e))?;
+        let path = dir.join(format!("grid-{:08}.png", self.state.images));
+        volux_envmap::io::save_png(&path, sheet.width(), sheet.height(), &sheet.to_u8())
+            .map_err(|e| io_error(&path, e))?;
+        Ok(path)
+    }
+
+    /// Trains until the schedule ends, `max_steps` or the time budget, checkpointing on the
+    /// way and at the end. Too many non-finite steps in a row end it with an error (no
+    /// checkpoint of the broken state is written).
+    pub fn run(&mut self, on_event: &mut dyn FnMut(Event)) -> Result<Finish, TrainError> {
+        let started = Instant::now();
+        let first_step = self.state.step;
+        let out = self.config.output.clone();
+        let every = |kimg: f64| (kimg * 1000.0).round() as u64;
+        let (grid_every, ckpt_every) = (every(out.grid_kimg), every(out.checkpoint_kimg));
+        let crossed =
+            |before: u64, after: u64, every: u64| every > 0 && before / every != after / every;
+        let mut group_started = Instant::now();
+        let mut group_steps = 0u64;
+        let mut group_images = 0u64;
+        if self.state.step == 0 {
+            on_event(Event::Grid(self.write_grid()?));
+        }
+        let finish = loop {
+            if self.state.images >= self.total_images() {
+                break Finish::Done;
+            }
+            if self
+                .options
+                .max_steps
+                .is_some_and(|m| self.state.step - first_step >= m)
+            {
+                break Finish::Steps;
+            }
+            if out.minutes > 0.0 && started.elapsed().as_secs_f64() >= out.minutes * 60.0 {
+                break Finish::Time;
+            }
+            let before = self.state.images;
+            let report = self.step()?;
+            group_steps += 1;
+            group_images += report.images - before;
+            let skipped = report.skipped.clone();
+            on_event(Event::Step(report));
+            if let Some(reason) = skipped {
+                tracing::warn!("step {} skipped: {reason}", self.state.step - 1);
+                if self.state.nonfinite_in_row >= self.config.train.max_nonfinite {
+                    return Err(TrainError::NonFinite {
+                        count: self.state.nonfinite_in_row,
+                        reason,
+                        step: self.state.step,
+                        last_good: self.last_checkpoint.clone(),
+                    });
+                }
+            }
+            if self.state.step.is_multiple_of(out.log_every) {
+                let secs = group_started.elapsed().as_secs_f64();
+                let line = self.metrics_line(secs / group_steps as f64, group_images as f64 / secs);
+                self.metrics
+                    .write(&line)
+                    .map_err(|e| io_error(self.metrics.path(), e))?;
+                on_event(Event::Metrics(line));
+                (group_started, group_steps, group_images) = (Instant::now(), 0, 0);
+            }
+            let after = self.state.images;
+            if crossed(before, after, grid_every) {
+                on_event(Event::Grid(self.write_grid()?));
+            }
+            if crossed(before, after, ckpt_every) {
+                on_event(Event::Checkpoint(self.checkpoint()?));
+            }
+        };
+        if self
+            .last_checkpoint
+            .as_ref()
+            .and_then(|p| checkpoint::read_state(p).ok())
+            .is_none_or(|s| s.step != self.state.step)
+        {
+            on_event(Event::Checkpoint(self.checkpoint()?));
+        }
+        on_event(Event::Grid(self.write_grid()?));
+        Ok(finish)
+    }
+
+    fn metrics_line(&mut self, sec_per_step: f64, images_per_sec: f64) -> MetricsLine {
+        let images = self.state.images;
+        let stage = match self.config.schedule.stage(images) {
+            Stage::One => 1,
+            Stage::Two => 2,
+            Stage::Done => 3,
+        };
+        MetricsLine {
+            step: self.state.step,
+            images,
+            kimg: images as f64 / 1000.0,
+            stage,
+            fade: self.config.schedule.fade(images, self.config.blocks()),
+            sec_per_step,
+            images_per_sec,
+            skipped: self.state.skipped,
+            peak_rss_mib: peak_rss_mib(),
+            losses: self.averages.take(),
+        }
+    }
+}
+
+/// The EMA generator of the checkpoint at `path` (a checkpoint folder, or a run folder whose
+/// newest checkpoint is taken), its config, and the device it runs on.
+pub fn load_for_sampling(
+    path: &Path,
+    backend: BackendKind,
+) -> Result<(Generator, TrainConfig, PathBuf, Device), TrainError> {
+    let dir = checkpoint::resolve(path)?;
+    let state = checkpoint::read_state(&dir)?;
+    let config = TrainConfig::from_text(state.config.clone(), &state.config_path)?;
+    let device = backend.device()?;
+    let g = config.generator().init(&device)?;
+    let g = checkpoint::load_ema(&dir, g)?;
+    Ok((g, config, dir, device))
+}

@@ -1,0 +1,198 @@
+//! Training end to end on a tiny config: both stages, checkpoints, resume equality, the
+//! non-finite guard, shape mismatches.
+
+use std::path::Path;
+use std::sync::Mutex;
+
+use volux_model::backend::BackendKind;
+use volux_train::checkpoint;
+use volux_train::config::TrainConfig;
+use volux_train::schedule::Stage;
+use volux_train::training_loop::{Event, Finish, TrainError, TrainOptions, Trainer};
+
+/// Two steps of stage 1 (the upsampler fading in), two of stage 2, batch 2, few samples per
+/// ray, three procedural environments.
+const TINY: &str = r#"
+[model]
+preset = "small"
+stratified = 4
+importance = 2
+
+[train]
+batch = 2
+seed = 3
+r1_interval = 2
+ema_rampup = 0.5
+
+[schedule]
+stage1_kimg = 0.004
+stage2_kimg = 0.004
+fade_kimg = 0.002
+
+[output]
+log_every = 1
+grid_kimg = 0.004
+grid_seeds = [0, 1]
+checkpoint_kimg = 0.004
+keep = 2
+
+[data]
+seed = 1
+resolution = 64
+volume_resolution = 32
+
+[data.lighting]
+builtin = false
+skies = 1
+overcast = 1
+studios = 1
+procedural_height = 16
+"#;
+
+/// The backend's random generator is process-wide: runs in parallel test threads would draw
+/// from it in turns, so each test holds this while it trains.
+static ONE_RUN_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+fn config(dir: &Path, text: &str) -> TrainConfig {
+    let path = dir.join("tiny.toml");
+    std::fs::write(&path, text).unwrap();
+    TrainConfig::load(&path).unwrap()
+}
+
+fn options(out: &Path, resume: bool, max_steps: Option<u64>) -> TrainOptions {
+    TrainOptions {
+        backend: BackendKind::Cpu,
+        out: out.to_path_buf(),
+        resume,
+        max_steps,
+    }
+}
+
+/// A step's number, stage and losses.
+type Seen = (u64, Stage, Vec<(String, f64)>);
+
+/// Runs and returns the losses of every step, in order.
+fn losses(trainer: &mut Trainer) -> (Finish, Vec<Seen>) {
+    let mut seen = Vec::new();
+    let finish = trainer
+        .run(&mut |e| {
+            if let Event::Step(r) = e {
+                let l = r.losses.iter().map(|(k, v)| (k.to_string(), *v)).collect();
+                seen.push((r.step, r.stage, l));
+            }
+        })
+        .unwrap();
+    (finish, seen)
+}
+
+#[test]
+fn training_runs_both_stages_and_resumes_with_identical_losses() {
+    let _one = ONE_RUN_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let c = config(dir.path(), TINY);
+
+    // Uninterrupted.
+    let full = dir.path().join("full");
+    let mut t = Trainer::new(c.clone(), options(&full, false, None)).unwrap();
+    let (finish, all) = losses(&mut t);
+    assert_eq!(finish, Finish::Done);
+    assert_eq!(all.len(), 4);
+    let stages: Vec<Stage> = all.iter().map(|s| s.1).collect();
+    assert_eq!(stages, [Stage::One, Stage::One, Stage::Two, Stage::Two]);
+    let names = |i: usize| all[i].2.iter().map(|(k, _)| k.clone()).collect::<Vec<_>>();
+    // Stage 1 runs albedo, geometry and path terms only; R1 on even steps.
+    assert!(names(0).contains(&"R1_albedo_hi".to_string()));
+    assert!(
+        !names(0)
+            .iter()
+            .any(|n| n.contains("shading") || n.contains("photo"))
+    );
+    assert!(!names(1).iter().any(|n| n.starts_with("R1")));
+    for n in [
+        "G_shading",
+        "G_photo",
+        "D_shading",
+        "D_photo",
+        "path",
+        "R1_photo",
+    ] {
+        assert!(
+            names(2).contains(&n.to_string()),
+            "{n} missing in {:?}",
+            names(2)
+        );
+    }
+    for (_, _, l) in &all {
+        assert!(l.iter().all(|(_, v)| v.is_finite()), "{l:?}");
+    }
+    // Checkpoints (kept: the newest 2), grids, metrics.
+    let kept = checkpoint::list(&full);
+    assert_eq!(kept.iter().map(|k| k.0).collect::<Vec<_>>(), [2, 4]);
+    assert!(full.join("grids/grid-00000000.png").is_file());
+    assert!(full.join("grids/grid-00000008.png").is_file());
+    let metrics = std::fs::read_to_string(full.join("metrics.jsonl")).unwrap();
+    assert_eq!(metrics.lines().count(), 4);
+    let state = checkpoint::read_state(&kept[1].1).unwrap();
+    assert_eq!((state.step, state.images), (4, 8));
+
+    // Interrupted after 1 step (mid fade-in, before any checkpoint of its own), then resumed.
+    let split = dir.path().join("split");
+    let mut t = Trainer::new(c.clone(), options(&split, false, Some(1))).unwrap();
+    let (finish, first) = losses(&mut t);
+    assert_eq!(finish, Finish::Steps);
+    drop(t);
+    let mut t = Trainer::new(c.clone(), options(&split, true, None)).unwrap();
+    assert_eq!(t.state().step, 1);
+    let (_, rest) = losses(&mut t);
+    let resumed: Vec<_> = first.into_iter().chain(rest).collect();
+    assert_eq!(resumed.len(), 4);
+    for (a, b) in all.iter().zip(&resumed) {
+        assert_eq!(a.0, b.0);
+        assert_eq!(a.2, b.2, "step {} differs after resuming", a.0);
+    }
+    // The metrics log holds each step once.
+    let metrics = std::fs::read_to_string(split.join("metrics.jsonl")).unwrap();
+    assert_eq!(metrics.lines().count(), 4);
+
+    // A config with other shapes is refused, naming what differs.
+    let other = config(
+        dir.path(),
+        &TINY.replace("importance = 2", "importance = 3"),
+    );
+    let e = Trainer::new(other, options(&full, true, None))
+        .err()
+        .expect("mismatch refused")
+        .to_string();
+    assert!(
+        e.contains("importance = 2") && e.contains("importance = 3"),
+        "{e}"
+    );
+}
+
+#[test]
+fn non_finite_steps_are_skipped_then_stop_the_run() {
+    let _one = ONE_RUN_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let text = TINY.replace("seed = 3", "seed = 3\nmax_nonfinite = 2");
+    let c = config(dir.path(), &text);
+    let out = dir.path().join("run");
+
+    // One poisoned step is skipped: nothing changes, the run goes on.
+    let mut t = Trainer::new(c.clone(), options(&out, false, Some(2))).unwrap();
+    t.poison_steps(&[0]);
+    let (_, steps) = losses(&mut t);
+    assert_eq!(steps.len(), 2);
+    assert_eq!(t.state().skipped, 1);
+    assert_eq!(t.state().images, 2, "the skipped step trained on nothing");
+    let good = checkpoint::latest(&out).unwrap();
+
+    // Two in a row stop it with a message naming the last good checkpoint.
+    let mut t = Trainer::new(c, options(&out, true, None)).unwrap();
+    t.poison_steps(&[2, 3]);
+    let e = t.run(&mut |_| {}).expect_err("stopped");
+    assert!(matches!(e, TrainError::NonFinite { count: 2, .. }), "{e}");
+    let message = e.to_string();
+    assert!(message.contains(&good.display().to_string()), "{message}");
+    // No checkpoint of the broken state was written.
+    assert_eq!(checkpoint::latest(&out).unwrap(), good);
+}
