@@ -4,6 +4,8 @@ mod backend;
 mod data;
 mod envmap;
 mod model;
+mod sample;
+mod train;
 
 use clap::{Parser, Subcommand};
 
@@ -29,6 +31,12 @@ pub enum Command {
     /// Training data: build a dataset's example cache, preview the synthetic heads.
     #[command(subcommand)]
     Data(data::DataCommand),
+    /// Train a model from a TOML config: the staged adversarial schedule, checkpoints, sample
+    /// grids, metrics; `--resume` continues the newest checkpoint.
+    Train(train::TrainArgs),
+    /// Render a checkpoint: layer grids, several cameras, EXR layers, rotating-light and
+    /// rotating-camera GIFs, latent interpolations.
+    Sample(sample::SampleArgs),
     /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
     Backend(backend::BackendArgs),
 }
@@ -38,6 +46,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Envmap(cmd) => envmap::run(cmd),
         Command::Model(cmd) => model::run(cmd),
         Command::Data(cmd) => data::run(cmd),
+        Command::Train(args) => train::run(args),
+        Command::Sample(args) => sample::run(args),
         Command::Backend(args) => backend::run(args),
     }
 }

@@ -100,6 +100,14 @@ pub struct NeiifConfig {
     /// field is mostly diffuse.
     #[config(default = -2.0)]
     pub specular_bias_init: f64,
+    /// Sharpness `s` of a fixed sphere prior added to the density logit,
+    /// `s (sphere_radius - |x|)`: a fresh field is then a soft ball instead of fog, which
+    /// short runs need (StyleSDF starts from a sphere for the same reason). 0 turns it off.
+    #[config(default = 0.0)]
+    pub sphere_prior: f64,
+    /// Radius of the sphere prior (world units; the head fits in the unit sphere).
+    #[config(default = 0.5)]
+    pub sphere_radius: f64,
 }
 
 /// The field.
@@ -111,6 +119,9 @@ pub struct Neiif {
     pub head_hidden: EqualizedLinear,
     pub head_out: EqualizedLinear,
     pub density_layer: usize,
+    /// `(sharpness, radius)` of the sphere prior; sharpness 0: none.
+    #[module(skip)]
+    pub sphere_prior: (f64, f64),
 }
 
 /// Which outputs a query needs; what is not needed is not computed.
@@ -194,6 +205,7 @@ impl NeiifConfig {
             head_hidden: EqualizedLinearConfig::new(self.width, self.head_width).init(device),
             head_out,
             density_layer: self.density_layer,
+            sphere_prior: (self.sphere_prior, self.sphere_radius),
         }
     }
 }
@@ -230,6 +242,15 @@ impl Neiif {
     /// Queries `points: [batch, points, 3]` of the fields of `w: [batch, w_dim]`.
     pub fn forward(&self, points: Tensor<3>, w: Tensor<2>, wants: FieldWants) -> FieldOutput {
         let [b, p, _] = points.dims();
+        let (sharpness, radius) = self.sphere_prior;
+        // The prior's logit `s (r - |x|)` and its gradient `-s x / |x|`, `[b, p, 1]` and
+        // `[b, p, 3]`.
+        let prior = (sharpness != 0.0).then(|| {
+            let norm = points.clone().square().sum_dim(2).add_scalar(1e-12).sqrt();
+            let logit = norm.clone().neg().add_scalar(radius).mul_scalar(sharpness);
+            let grad = (points.clone() / norm).mul_scalar(-sharpness);
+            (logit, grad)
+        });
         let flat = points.reshape([b * p, 3]);
         let d = self.encoding.output_dim();
         let (encoded, mut tangents) = if wants.normals {
@@ -267,11 +288,17 @@ impl Neiif {
             };
             h = z;
             if i + 1 == self.density_layer {
-                let raw = per_point(&self.density_head, h.clone()); // [b, p, 1]
+                let mut raw = per_point(&self.density_head, h.clone()); // [b, p, 1]
+                if let Some((logit, _)) = &prior {
+                    raw = raw + logit.clone();
+                }
                 out.sigma = activation::softplus(raw.clone(), 1.0).reshape([b, p]);
                 if let Some(t) = tangents.take() {
-                    // d sigma / dx_j = sigmoid(raw) * (head weight . tangent_j).
-                    let g = per_point_linear(&self.density_head, t).reshape([b, 3, p]);
+                    // d sigma / dx_j = sigmoid(raw) * (head weight . tangent_j + prior_j).
+                    let mut g = per_point_linear(&self.density_head, t).reshape([b, 3, p]);
+                    if let Some((_, grad)) = &prior {
+                        g = g + grad.clone().swap_dims(1, 2);
+                    }
                     let g = g * activation::sigmoid(raw).reshape([b, 1, p]);
                     let g = g.swap_dims(1, 2); // [b, p, 3]
                     out.normals = Some(normals_from_gradient(g.clone()));
@@ -308,11 +335,16 @@ mod tests {
     use volux_envmap::report::SplitMix64;
 
     fn small(frequencies: usize, device: &Device) -> Neiif {
+        small_with_prior(frequencies, 0.0, device)
+    }
+
+    fn small_with_prior(frequencies: usize, sphere_prior: f64, device: &Device) -> Neiif {
         NeiifConfig::new()
             .with_w_dim(16)
             .with_width(32)
             .with_head_width(16)
             .with_frequencies(frequencies)
+            .with_sphere_prior(sphere_prior)
             .init(device)
     }
 
@@ -327,10 +359,11 @@ mod tests {
     /// Forward-mode `grad(sigma)` against central differences of the density on random
     /// weights. `h` and the tolerance are set by the highest octave: central differences of
     /// `sin(2^(F-1) pi x)` have a truncation error `~ (2^(F-1) pi h)^2 / 6`.
-    fn check_gradient(frequencies: usize, h: f64, tol: f64) {
+    fn check_gradient(frequencies: usize, sphere_prior: f64, h: f64, tol: f64) {
         let device = Device::flex();
         // Fixed weights and latent, so that the error measured here is the error of every run.
-        let field = small(frequencies, &device).map(&mut Reseed::new(21, DType::F32));
+        let field = small_with_prior(frequencies, sphere_prior, &device)
+            .map(&mut Reseed::new(21, DType::F32));
         let w = normals(&mut SplitMix64::new(22), 16);
         let w = Tensor::<1>::from_floats(
             w.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
@@ -399,7 +432,8 @@ mod tests {
 
     #[test]
     fn forward_mode_gradient_matches_central_differences_at_low_frequencies() {
-        check_gradient(4, 1e-3, 2e-3);
+        check_gradient(4, 0.0, 1e-3, 2e-3);
+        check_gradient(4, 10.0, 1e-3, 2e-3);
     }
 
     #[test]
@@ -407,7 +441,7 @@ mod tests {
         // With fixed weights the worst relative error is 4.1e-3 at h = 5e-5 (f32 rounding of
         // the sigma differences and the truncation of sin(512 pi x) balance there; 1e-4 gives
         // 1.6e-2, 2e-4 gives 6e-2). A wrong tangent is off by O(1).
-        check_gradient(10, 5e-5, 1e-2);
+        check_gradient(10, 0.0, 5e-5, 1e-2);
     }
 
     #[test]

@@ -32,6 +32,12 @@ pub struct ModelConfig {
     /// Importance samples per ray (the preset's if absent).
     #[serde(default)]
     pub importance: Option<usize>,
+    /// Sharpness of the NeIIF's sphere prior on the density logit (0 or absent: none).
+    #[serde(default)]
+    pub sphere_prior: Option<f64>,
+    /// Radius of the sphere prior (0.5 if absent).
+    #[serde(default)]
+    pub sphere_radius: Option<f64>,
 }
 
 impl ModelConfig {
@@ -55,6 +61,18 @@ impl ModelConfig {
         }
         if let Some(n) = self.importance {
             g.renderer.importance = n;
+        }
+        if let Some(s) = self.sphere_prior {
+            if !(s.is_finite() && s >= 0.0) {
+                return Err(format!("model.sphere_prior = {s} must be finite and >= 0"));
+            }
+            g.neiif.sphere_prior = s;
+        }
+        if let Some(r) = self.sphere_radius {
+            if !(r.is_finite() && r > 0.0 && r < 1.0) {
+                return Err(format!("model.sphere_radius = {r} must be in (0, 1)"));
+            }
+            g.neiif.sphere_radius = r;
         }
         if g.renderer.stratified < 2 {
             return Err(format!(
@@ -353,6 +371,10 @@ volume_resolution = 32
             (TINY.replace("batch = 4", "lr_g = -1.0"), "train.lr_g"),
             (TINY.replace("batch = 4", "beta2 = 1.0"), "train.beta2"),
             (TINY.replace("\"small\"", "\"huge\""), "model.preset"),
+            (
+                TINY.replace("\"small\"", "\"small\"\nsphere_radius = 2.0"),
+                "model.sphere_radius",
+            ),
             (
                 TINY.replace("resolution = 64", "resolution = 128"),
                 "data.resolution",

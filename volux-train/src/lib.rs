@@ -11,8 +11,10 @@
 //!   checkpoints, resume).
 //! - [`checkpoint`]: atomic checkpoint folders, keep-last-K, resume.
 //! - [`metrics`]: the JSON-lines metrics log.
-//! - [`sampling`]: latents from seeds, every layer of a sample, the sample grid.
+//! - [`sampling`]: latents from seeds, every layer of a sample, the sample grid;
+//!   [`animation`]: looping GIFs.
 
+pub mod animation;
 pub mod checkpoint;
 pub mod config;
 pub mod losses;

@@ -20,10 +20,12 @@ pub struct ScheduleConfig {
 
 impl Default for ScheduleConfig {
     fn default() -> Self {
+        // The paper: 1M "iterations" of stage 1, then 500k more (read as images, StyleGAN's
+        // kimg convention).
         ScheduleConfig {
-            stage1_kimg: 200.0,
-            stage2_kimg: 800.0,
-            fade_kimg: 50.0,
+            stage1_kimg: 1000.0,
+            stage2_kimg: 500.0,
+            fade_kimg: 100.0,
         }
     }
 }

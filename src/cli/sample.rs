@@ -1,0 +1,270 @@
+//! `volux sample`: render a checkpoint's EMA generator: grids of every intrinsic layer, the
+//! relit image from several cameras, EXR files of the HDR layers, and animations of a rotating
+//! camera, a rotating environment and a latent interpolation (the paper's figures 4 and 5).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use volux_data::batch::lighting_tensors;
+use volux_data::contact_sheet::ContactSheet;
+use volux_data::hdri_collection::BUILTIN_HDRIS;
+use volux_envmap::{EnvMap, LightMapSet, PreconvolveOptions, io, preconvolve};
+use volux_model::backend::BackendKind;
+use volux_model::generator::Generator;
+use volux_train::animation::save_gif;
+use volux_train::sampling::{self, SampleLayers};
+use volux_train::training_loop::load_for_sampling;
+
+use super::data::parse_seeds;
+
+#[derive(Debug, Args)]
+pub struct SampleArgs {
+    /// A checkpoint folder, or a run folder (its newest checkpoint is used).
+    #[arg(long)]
+    pub checkpoint: PathBuf,
+    /// Latent seeds: a range `0-7` or a list `1,5,9`.
+    #[arg(long, default_value = "0-7")]
+    pub seeds: String,
+    /// Camera yaws in degrees (comma-separated); the first is used for the layer grids.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        default_value = "0"
+    )]
+    pub yaw: Vec<f64>,
+    /// Camera pitches in degrees (comma-separated).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        default_value = "0"
+    )]
+    pub pitch: Vec<f64>,
+    /// HDR environment maps (EXR or HDR) to light with; default: the shipped sunrise map.
+    #[arg(long)]
+    pub hdri: Vec<PathBuf>,
+    /// Frames of a GIF of the first environment turning once around the heads (0: none).
+    #[arg(long, default_value_t = 0)]
+    pub rotate_light: usize,
+    /// Frames of a GIF of the camera swinging from -30 to 30 degrees of yaw and back (0: none).
+    #[arg(long, default_value_t = 0)]
+    pub rotate_camera: usize,
+    /// `A,B,N`: N images interpolating the latent of seed A to that of seed B (PNG and GIF).
+    #[arg(long)]
+    pub interpolate: Option<String>,
+    /// Compute backend: cpu or wgpu.
+    #[arg(long, default_value = "cpu")]
+    pub backend: BackendKind,
+    /// Output folder.
+    #[arg(long, default_value = "samples")]
+    pub out: PathBuf,
+}
+
+/// An environment's light maps and a short name for file names.
+struct Environment {
+    name: String,
+    lights: LightMapSet,
+}
+
+fn environments(files: &[PathBuf]) -> anyhow::Result<Vec<Environment>> {
+    let options = PreconvolveOptions::default();
+    let make = |name: String, map: EnvMap| -> anyhow::Result<Environment> {
+        let lights =
+            preconvolve(&map, &options).with_context(|| format!("preconvolving {name}"))?;
+        Ok(Environment { name, lights })
+    };
+    if files.is_empty() {
+        let h = BUILTIN_HDRIS
+            .iter()
+            .find(|h| h.name == "sunrise")
+            .expect("sunrise is shipped");
+        return Ok(vec![make(
+            h.name.into(),
+            io::load_bytes(h.bytes, Path::new(h.path))?,
+        )?]);
+    }
+    files
+        .iter()
+        .map(|p| {
+            let name = p
+                .file_stem()
+                .map_or("env".into(), |s| s.to_string_lossy().into_owned());
+            make(name, io::load(p)?)
+        })
+        .collect()
+}
+
+/// Renders `z` (one latent per pose) under one environment turned by `env_yaw` radians.
+fn render(
+    g: &Generator,
+    z: burn::tensor::Tensor<2>,
+    poses: &[(f64, f64)],
+    env: &Environment,
+    env_yaw: f64,
+    background: [f32; 3],
+    device: &burn::tensor::Device,
+) -> anyhow::Result<SampleLayers> {
+    let sets = vec![&env.lights; poses.len()];
+    let lighting = lighting_tensors(&sets, &vec![env_yaw; poses.len()], device)?;
+    Ok(sampling::render_layers(g, z, poses, &lighting, background)?)
+}
+
+/// The relit images side by side in one row.
+fn strip(layers: &SampleLayers) -> ContactSheet {
+    let s = layers.side;
+    let mut sheet = ContactSheet::new(s, s, layers.relit.len(), 1);
+    for (i, tile) in layers.relit.iter().enumerate() {
+        sheet.put(i, 0, tile);
+    }
+    sheet
+}
+
+fn save_sheet(path: &Path, sheet: &ContactSheet) -> anyhow::Result<()> {
+    io::save_png(path, sheet.width(), sheet.height(), &sheet.to_u8())?;
+    println!("wrote {}", path.display());
+    Ok(())
+}
+
+fn save_frames(path: &Path, frames: &[ContactSheet]) -> anyhow::Result<()> {
+    let (w, h) = (frames[0].width(), frames[0].height());
+    let pixels: Vec<Vec<[u8; 3]>> = frames.iter().map(|f| f.to_u8()).collect();
+    save_gif(path, w, h, &pixels, 80)?;
+    println!("wrote {} ({} frames)", path.display(), frames.len());
+    Ok(())
+}
+
+pub fn run(args: SampleArgs) -> anyhow::Result<()> {
+    let seeds = parse_seeds(&args.seeds)?;
+    if seeds.is_empty() || seeds.len() > 64 {
+        bail!("--seeds names {} seeds: give 1 to 64", seeds.len());
+    }
+    for (flag, values) in [("--yaw", &args.yaw), ("--pitch", &args.pitch)] {
+        if let Some(v) = values.iter().find(|v| !v.is_finite() || v.abs() > 90.0) {
+            bail!("{flag} {v}: degrees must be finite and within [-90, 90]");
+        }
+    }
+    let interpolation = args
+        .interpolate
+        .as_deref()
+        .map(|text| -> anyhow::Result<(u64, u64, usize)> {
+            let bad = || format!("--interpolate {text:?}: expected A,B,N like 0,5,8");
+            let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+            let [a, b, n] = parts.as_slice() else {
+                bail!(bad());
+            };
+            let n: usize = n.parse().with_context(bad)?;
+            if !(2..=64).contains(&n) {
+                bail!("{}: N must be in 2..=64", bad());
+            }
+            Ok((
+                a.parse().with_context(bad)?,
+                b.parse().with_context(bad)?,
+                n,
+            ))
+        })
+        .transpose()?;
+    let started = Instant::now();
+    let (g, config, dir, device) = load_for_sampling(&args.checkpoint, args.backend)?;
+    println!(
+        "checkpoint {} ({} model)",
+        dir.display(),
+        config.model.preset
+    );
+    let envs = environments(&args.hdri)?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let bg = config.data.albedo_background();
+    let z_dim = config.generator().mapping.z_dim;
+    let z = sampling::latents(&seeds, z_dim, &device);
+    let n = seeds.len();
+    let rad = f64::to_radians;
+    let first_pose = (rad(args.yaw[0]), rad(args.pitch[0]));
+
+    for env in &envs {
+        // Every layer, one row per seed.
+        let layers = render(&g, z.clone(), &vec![first_pose; n], env, 0.0, bg, &device)?;
+        save_sheet(
+            &args.out.join(format!("layers-{}.png", env.name)),
+            &sampling::grid(&layers),
+        )?;
+        // HDR layers of each seed as EXR.
+        let exr = args.out.join("exr");
+        std::fs::create_dir_all(&exr)?;
+        let s = layers.side;
+        for (i, seed) in seeds.iter().enumerate() {
+            for (layer, texels) in [
+                ("albedo", &layers.albedo[i]),
+                ("diffuse", &layers.diffuse[i]),
+                ("specular", &layers.specular[i]),
+                ("normals", &layers.normals[i]),
+            ] {
+                let path = exr.join(format!("seed{seed}-{}-{layer}.exr", env.name));
+                io::save_exr(&path, s, s, texels)?;
+            }
+        }
+        println!(
+            "wrote {} (albedo, diffuse, specular, normals per seed)",
+            exr.display()
+        );
+        // The relit image from every camera: one row per seed, one column per (yaw, pitch).
+        let views: Vec<(f64, f64)> = args
+            .pitch
+            .iter()
+            .flat_map(|&p| args.yaw.iter().map(move |&y| (rad(y), rad(p))))
+            .collect();
+        let mut sheet = ContactSheet::new(s, s, views.len(), n);
+        for (column, &pose) in views.iter().enumerate() {
+            let l = render(&g, z.clone(), &vec![pose; n], env, 0.0, bg, &device)?;
+            for (row, tile) in l.relit.iter().enumerate() {
+                sheet.put(column, row, tile);
+            }
+        }
+        save_sheet(&args.out.join(format!("views-{}.png", env.name)), &sheet)?;
+    }
+
+    let env = &envs[0];
+    if args.rotate_light > 0 {
+        let frames = (0..args.rotate_light)
+            .map(|f| {
+                let yaw = std::f64::consts::TAU * f as f64 / args.rotate_light as f64;
+                let l = render(&g, z.clone(), &vec![first_pose; n], env, yaw, bg, &device)?;
+                Ok(strip(&l))
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        save_frames(&args.out.join("rotate-light.gif"), &frames)?;
+    }
+    if args.rotate_camera > 0 {
+        let frames = (0..args.rotate_camera)
+            .map(|f| {
+                let phase = std::f64::consts::TAU * f as f64 / args.rotate_camera as f64;
+                let pose = (rad(30.0) * phase.sin(), first_pose.1);
+                let l = render(&g, z.clone(), &vec![pose; n], env, 0.0, bg, &device)?;
+                Ok(strip(&l))
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        save_frames(&args.out.join("rotate-camera.gif"), &frames)?;
+    }
+    if let Some((a, b, steps)) = interpolation {
+        let zi = sampling::interpolate(a, b, steps, z_dim, &device);
+        let l = render(&g, zi, &vec![first_pose; steps], env, 0.0, bg, &device)?;
+        let sheet = strip(&l);
+        save_sheet(&args.out.join(format!("interpolate-{a}-{b}.png")), &sheet)?;
+        let s = l.side;
+        let frames: Vec<ContactSheet> = l
+            .relit
+            .iter()
+            .chain(l.relit.iter().rev())
+            .map(|tile| {
+                let mut f = ContactSheet::new(s, s, 1, 1);
+                f.put(0, 0, tile);
+                f
+            })
+            .collect();
+        save_frames(&args.out.join(format!("interpolate-{a}-{b}.gif")), &frames)?;
+    }
+    println!("done in {:.1} s", started.elapsed().as_secs_f64());
+    Ok(())
+}
