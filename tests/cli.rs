@@ -248,3 +248,119 @@ fn data_heads_writes_a_contact_sheet_and_reports_speed() {
         text(&bad)
     );
 }
+
+/// Three steps of stage 1 and three of stage 2 at batch 2 with few samples per ray.
+const TINY_TRAINING: &str = r#"
+[model]
+preset = "small"
+stratified = 4
+importance = 2
+sphere_prior = 10.0
+sphere_radius = 0.35
+
+[train]
+batch = 2
+
+[schedule]
+stage1_kimg = 0.006
+stage2_kimg = 0.006
+fade_kimg = 0.003
+
+[output]
+log_every = 2
+grid_kimg = 0.004
+grid_seeds = [0, 1]
+checkpoint_kimg = 0.004
+keep = 2
+
+[data]
+resolution = 64
+volume_resolution = 32
+
+[data.lighting]
+builtin = false
+skies = 1
+overcast = 0
+studios = 1
+procedural_height = 16
+"#;
+
+#[test]
+fn train_resume_and_sample_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("tiny.toml");
+    std::fs::write(&config, TINY_TRAINING).unwrap();
+    let run = dir.path().join("run");
+    let (config, run_s) = (config.to_str().unwrap(), run.to_str().unwrap());
+
+    // Four steps, stopped; then resumed to the end of the schedule.
+    let o = volux(&["train", "--config", config, "--out", run_s, "--steps", "4"]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("step limit reached: step 4"), "{t}");
+    let o = volux(&["train", "--config", config, "--out", run_s, "--resume"]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("resuming from"), "{t}");
+    assert!(t.contains("schedule complete: step 6, 0.01 kimg"), "{t}");
+    assert!(t.contains("stage 2"), "{t}");
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    assert_eq!(metrics.lines().count(), 3, "{metrics}");
+    assert!(run.join("checkpoint-00000006/generator_ema.bpk").is_file());
+
+    // Sampling from the run folder takes its newest checkpoint.
+    let samples = dir.path().join("samples");
+    let o = volux(&[
+        "sample",
+        "--checkpoint",
+        run_s,
+        "--seeds",
+        "0-1",
+        "--yaw=-20,20",
+        "--rotate-light",
+        "3",
+        "--rotate-camera",
+        "3",
+        "--interpolate",
+        "0,1,3",
+        "--out",
+        samples.to_str().unwrap(),
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    for f in [
+        "layers-sunrise.png",
+        "views-sunrise.png",
+        "rotate-light.gif",
+        "rotate-camera.gif",
+        "interpolate-0-1.png",
+        "interpolate-0-1.gif",
+        "exr/seed1-sunrise-specular.exr",
+    ] {
+        assert!(samples.join(f).is_file(), "{f} missing: {t}");
+    }
+
+    // A resume with a changed model is refused, naming both.
+    std::fs::write(
+        dir.path().join("tiny.toml"),
+        TINY_TRAINING.replace("importance = 2", "importance = 5"),
+    )
+    .unwrap();
+    let o = volux(&["train", "--config", config, "--out", run_s, "--resume"]);
+    let t = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        t.contains("importance = 2") && t.contains("importance = 5"),
+        "{t}"
+    );
+    // A typo names the file and the key.
+    std::fs::write(
+        dir.path().join("tiny.toml"),
+        TINY_TRAINING.replace("batch = 2", "bacth = 2"),
+    )
+    .unwrap();
+    let o = volux(&["train", "--config", config, "--out", run_s]);
+    let t = text(&o);
+    assert!(!o.status.success());
+    assert!(t.contains("tiny.toml") && t.contains("bacth"), "{t}");
+}

@@ -14,6 +14,7 @@ pub struct MetricsLine {
     pub step: u64,
     pub images: u64,
     pub kimg: f64,
+    /// The stage the group's last step trained in (1 or 2).
     pub stage: u8,
     pub fade: Vec<f64>,
     /// Wall-clock seconds per step over the group.

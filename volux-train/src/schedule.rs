@@ -186,7 +186,7 @@ mod tests {
     #[test]
     fn configs_reject_unknown_keys_and_impossible_lengths() {
         let c: ScheduleConfig = toml::from_str("stage1_kimg = 5.0\nfade_kimg = 1.0").unwrap();
-        assert_eq!((c.stage1_kimg, c.stage2_kimg), (5.0, 800.0));
+        assert_eq!((c.stage1_kimg, c.stage2_kimg), (5.0, 500.0));
         assert!(
             toml::from_str::<ScheduleConfig>("stage3_kimg = 1.0")
                 .unwrap_err()

@@ -380,8 +380,10 @@ impl Trainer {
         let mut group_started = Instant::now();
         let mut group_steps = 0u64;
         let mut group_images = 0u64;
+        let mut last_grid = None;
         if self.state.step == 0 {
             on_event(Event::Grid(self.write_grid()?));
+            last_grid = Some(0);
         }
         let finish = loop {
             if self.state.images >= self.total_images() {
@@ -402,6 +404,7 @@ impl Trainer {
             group_steps += 1;
             group_images += report.images - before;
             let skipped = report.skipped.clone();
+            let (stage, fade) = (report.stage, report.fade.clone());
             on_event(Event::Step(report));
             if let Some(reason) = skipped {
                 tracing::warn!("step {} skipped: {reason}", self.state.step - 1);
@@ -416,7 +419,12 @@ impl Trainer {
             }
             if self.state.step.is_multiple_of(out.log_every) {
                 let secs = group_started.elapsed().as_secs_f64();
-                let line = self.metrics_line(secs / group_steps as f64, group_images as f64 / secs);
+                let line = self.metrics_line(
+                    stage,
+                    fade,
+                    secs / group_steps as f64,
+                    group_images as f64 / secs,
+                );
                 self.metrics
                     .write(&line)
                     .map_err(|e| io_error(self.metrics.path(), e))?;
@@ -426,6 +434,7 @@ impl Trainer {
             let after = self.state.images;
             if crossed(before, after, grid_every) {
                 on_event(Event::Grid(self.write_grid()?));
+                last_grid = Some(after);
             }
             if crossed(before, after, ckpt_every) {
                 on_event(Event::Checkpoint(self.checkpoint()?));
@@ -439,23 +448,31 @@ impl Trainer {
         {
             on_event(Event::Checkpoint(self.checkpoint()?));
         }
-        on_event(Event::Grid(self.write_grid()?));
+        if last_grid != Some(self.state.images) {
+            on_event(Event::Grid(self.write_grid()?));
+        }
         Ok(finish)
     }
 
-    fn metrics_line(&mut self, sec_per_step: f64, images_per_sec: f64) -> MetricsLine {
+    /// The line of a group of steps whose last step trained in `stage` with `fade`.
+    fn metrics_line(
+        &mut self,
+        stage: Stage,
+        fade: Vec<f64>,
+        sec_per_step: f64,
+        images_per_sec: f64,
+    ) -> MetricsLine {
         let images = self.state.images;
-        let stage = match self.config.schedule.stage(images) {
-            Stage::One => 1,
-            Stage::Two => 2,
-            Stage::Done => 3,
-        };
         MetricsLine {
             step: self.state.step,
             images,
             kimg: images as f64 / 1000.0,
-            stage,
-            fade: self.config.schedule.fade(images, self.config.blocks()),
+            stage: match stage {
+                Stage::One => 1,
+                Stage::Two => 2,
+                Stage::Done => 3,
+            },
+            fade,
             sec_per_step,
             images_per_sec,
             skipped: self.state.skipped,
