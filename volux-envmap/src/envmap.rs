@@ -22,9 +22,13 @@ pub struct EnvMap {
     texels: Vec<Rgb>,
 }
 
+/// Negative texels down to this are compression noise, clamped with only a debug message.
+const NEGATIVE_NOISE: f32 = 0.01;
+
 impl EnvMap {
     /// A map from row-major texels. Errors on a size mismatch, an empty or non-2:1 map, and
-    /// NaN/Inf values; negative values are clamped to 0 and counted in a `tracing` warning.
+    /// NaN/Inf values; negative values are clamped to 0 and counted in a `tracing` warning
+    /// (a debug message when none is below -0.01, compression noise around black).
     pub fn new(width: usize, height: usize, texels: Vec<Rgb>) -> Result<Self, EnvMapError> {
         Self::validated(width, height, texels, IN_MEMORY)
     }
@@ -56,11 +60,21 @@ impl EnvMap {
                     *v = v.max(0.0);
                 }
             }
-            tracing::warn!(
-                "{origin}: clamped {} negative texel values to 0 (most negative {:e})",
-                stats.negative,
-                stats.min_value
-            );
+            // Compression noise around black (lossy EXR codecs leave values of -1e-3) is
+            // routine; a clearly negative value means a broken map and deserves a warning.
+            if stats.min_value < -NEGATIVE_NOISE {
+                tracing::warn!(
+                    "{origin}: clamped {} negative texel values to 0 (most negative {:e})",
+                    stats.negative,
+                    stats.min_value
+                );
+            } else {
+                tracing::debug!(
+                    "{origin}: clamped {} slightly negative texel values to 0 (most negative {:e})",
+                    stats.negative,
+                    stats.min_value
+                );
+            }
         }
         Ok(Self {
             width,
