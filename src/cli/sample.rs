@@ -7,12 +7,10 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::Args;
-use volux_data::batch::lighting_tensors;
 use volux_data::contact_sheet::ContactSheet;
 use volux_data::hdri_collection::BUILTIN_HDRIS;
 use volux_envmap::{EnvMap, LightMapSet, PreconvolveOptions, io, preconvolve};
 use volux_model::backend::BackendKind;
-use volux_model::generator::Generator;
 use volux_train::animation::save_gif;
 use volux_train::sampling::{self, SampleLayers};
 use volux_train::training_loop::load_for_sampling;
@@ -97,21 +95,6 @@ fn environments(files: &[PathBuf]) -> anyhow::Result<Vec<Environment>> {
         .collect()
 }
 
-/// Renders `z` (one latent per pose) under one environment turned by `env_yaw` radians.
-fn render(
-    g: &Generator,
-    z: burn::tensor::Tensor<2>,
-    poses: &[(f64, f64)],
-    env: &Environment,
-    env_yaw: f64,
-    background: [f32; 3],
-    device: &burn::tensor::Device,
-) -> anyhow::Result<SampleLayers> {
-    let sets = vec![&env.lights; poses.len()];
-    let lighting = lighting_tensors(&sets, &vec![env_yaw; poses.len()], device)?;
-    Ok(sampling::render_layers(g, z, poses, &lighting, background)?)
-}
-
 /// The relit images side by side in one row.
 fn strip(layers: &SampleLayers) -> ContactSheet {
     let s = layers.side;
@@ -185,7 +168,8 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
 
     for env in &envs {
         // Every layer, one row per seed.
-        let layers = render(&g, z.clone(), &vec![first_pose; n], env, 0.0, bg, &device)?;
+        let layers =
+            sampling::render_under(&g, z.clone(), &vec![first_pose; n], &env.lights, 0.0, bg)?;
         save_sheet(
             &args.out.join(format!("layers-{}.png", env.name)),
             &sampling::grid(&layers),
@@ -217,7 +201,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
             .collect();
         let mut sheet = ContactSheet::new(s, s, views.len(), n);
         for (column, &pose) in views.iter().enumerate() {
-            let l = render(&g, z.clone(), &vec![pose; n], env, 0.0, bg, &device)?;
+            let l = sampling::render_under(&g, z.clone(), &vec![pose; n], &env.lights, 0.0, bg)?;
             for (row, tile) in l.relit.iter().enumerate() {
                 sheet.put(column, row, tile);
             }
@@ -230,7 +214,14 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
         let frames = (0..args.rotate_light)
             .map(|f| {
                 let yaw = std::f64::consts::TAU * f as f64 / args.rotate_light as f64;
-                let l = render(&g, z.clone(), &vec![first_pose; n], env, yaw, bg, &device)?;
+                let l = sampling::render_under(
+                    &g,
+                    z.clone(),
+                    &vec![first_pose; n],
+                    &env.lights,
+                    yaw,
+                    bg,
+                )?;
                 Ok(strip(&l))
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
@@ -241,7 +232,8 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
             .map(|f| {
                 let phase = std::f64::consts::TAU * f as f64 / args.rotate_camera as f64;
                 let pose = (rad(30.0) * phase.sin(), first_pose.1);
-                let l = render(&g, z.clone(), &vec![pose; n], env, 0.0, bg, &device)?;
+                let l =
+                    sampling::render_under(&g, z.clone(), &vec![pose; n], &env.lights, 0.0, bg)?;
                 Ok(strip(&l))
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
@@ -249,7 +241,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
     }
     if let Some((a, b, steps)) = interpolation {
         let zi = sampling::interpolate(a, b, steps, z_dim, &device);
-        let l = render(&g, zi, &vec![first_pose; steps], env, 0.0, bg, &device)?;
+        let l = sampling::render_under(&g, zi, &vec![first_pose; steps], &env.lights, 0.0, bg)?;
         let sheet = strip(&l);
         save_sheet(&args.out.join(format!("interpolate-{a}-{b}.png")), &sheet)?;
         let s = l.side;

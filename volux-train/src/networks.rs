@@ -123,10 +123,13 @@ pub fn materialize<M: Module>(module: &M) {
 pub fn all_finite<M: Module>(module: &M) -> bool {
     let mut collect = Collect(Vec::new());
     module.visit(&mut collect);
-    collect.0.into_iter().all(|t| {
-        let s: f32 = t.sum().into_scalar();
-        s.is_finite()
-    })
+    // One sum of all parameters, read back once: NaN or infinity anywhere makes it non-finite.
+    collect
+        .0
+        .into_iter()
+        .map(|t| t.sum())
+        .reduce(|a, b| a + b)
+        .is_none_or(|total| total.into_scalar::<f32>().is_finite())
 }
 
 #[cfg(test)]

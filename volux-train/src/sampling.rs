@@ -3,9 +3,10 @@
 //! diffuse, specular, relit, depth per column).
 
 use burn::tensor::{Device, Tensor, TensorData};
+use volux_data::batch::{LightingTensorError, lighting_tensors};
 use volux_data::contact_sheet::{self, ContactSheet};
-use volux_envmap::Rgb;
 use volux_envmap::report::SplitMix64;
+use volux_envmap::{LightMapSet, Rgb};
 use volux_model::backend::to_f32_vec;
 use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
 use volux_model::volume_rendering::Lighting;
@@ -126,6 +127,30 @@ pub fn render_layers(
         depth: grey(need(out.depth), f),
         opacity: grey(out.opacity, f),
     })
+}
+
+/// Why samples cannot be rendered.
+#[derive(Debug, thiserror::Error)]
+pub enum SampleError {
+    #[error("lighting: {0}")]
+    Lighting(#[from] LightingTensorError),
+    #[error("generator: {0}")]
+    Model(#[from] GeneratorError),
+}
+
+/// [`render_layers`] with every element lit by one environment's light maps, turned by
+/// `env_yaw` radians.
+pub fn render_under(
+    g: &Generator,
+    z: Tensor<2>,
+    poses: &[(f64, f64)],
+    lights: &LightMapSet,
+    env_yaw: f64,
+    background: [f32; 3],
+) -> Result<SampleLayers, SampleError> {
+    let sets = vec![lights; poses.len()];
+    let lighting = lighting_tensors(&sets, &vec![env_yaw; poses.len()], &z.device())?;
+    Ok(render_layers(g, z, poses, &lighting, background)?)
 }
 
 /// The columns of a sample grid.

@@ -45,8 +45,15 @@ pub struct StepInputs<'a> {
     pub r1: Option<(f64, usize)>,
     pub lr_g: f64,
     pub lr_d: f64,
-    /// Test hook: make the generator loss NaN.
-    pub poison: bool,
+    /// Test hook: make this phase's loss NaN.
+    pub poison: Option<Phase>,
+}
+
+/// The two halves of a step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    Generator,
+    Discriminator,
 }
 
 /// What a step did.
@@ -209,7 +216,45 @@ fn generate(
     Ok((fakes, path))
 }
 
-/// One step: updates `g`, `d` and their optimisers in place unless something is not finite.
+/// `loss * NaN` if `poison` (the non-finite guard's test hook).
+fn poisoned(loss: Tensor<1>, poison: bool) -> Tensor<1> {
+    if poison {
+        loss.mul_scalar(f64::NAN)
+    } else {
+        loss
+    }
+}
+
+/// Logs `loss` under `names.0`, then one optimiser step of `model` on it, unless the loss or
+/// the updated weights are not finite: then `model` and `opt` are left as they were and the
+/// reason is returned.
+fn guarded_update<M: Module + Clone>(
+    model: &mut M,
+    opt: &mut ModuleOptimizer,
+    lr: f64,
+    loss: Tensor<1>,
+    (total, what): (&'static str, &str),
+    outcome: &mut StepOutcome,
+) -> Result<(), String> {
+    let value = scalar(&loss);
+    outcome.losses.insert(total, value);
+    if !value.is_finite() {
+        return Err(format!("{what} loss is {value}"));
+    }
+    let mut grads = loss.backward();
+    let grads = GradientsParams::from_module(&mut grads, &*model);
+    let (before, opt_before) = (model.clone(), opt.clone());
+    *model = opt.step(lr, model.clone(), grads);
+    if !all_finite(&*model) {
+        *model = before;
+        *opt = opt_before;
+        return Err(format!("{what} weights became non-finite"));
+    }
+    Ok(())
+}
+
+/// One step: updates `g`, `d` and their optimisers in place, or, if any loss or updated
+/// weight is not finite, leaves all four as they were.
 pub fn train_step(
     g: &mut Generator,
     d: &mut Discriminators,
@@ -233,26 +278,19 @@ pub fn train_step(
         outcome.losses.insert("path", scalar(&p));
         add(&mut g_loss, p.mul_scalar(w.path));
     }
-    let Some(mut g_loss) = g_loss else {
+    let Some(g_loss) = g_loss else {
         return Ok(outcome);
     };
-    if inputs.poison {
-        g_loss = g_loss.mul_scalar(f64::NAN);
-    }
-    let g_total = scalar(&g_loss);
-    outcome.losses.insert("G_total", g_total);
-    if !g_total.is_finite() {
-        outcome.skipped = Some(format!("generator loss is {g_total}"));
-        return Ok(outcome);
-    }
-    let mut grads = g_loss.backward();
-    let grads = GradientsParams::from_module(&mut grads, &*g);
     let (g_before, opt_g_before) = (g.clone(), opt_g.clone());
-    *g = opt_g.step(inputs.lr_g, g.clone(), grads);
-    if !all_finite(&*g) {
-        *g = g_before;
-        *opt_g = opt_g_before;
-        outcome.skipped = Some("generator weights became non-finite".into());
+    if let Err(why) = guarded_update(
+        g,
+        opt_g,
+        inputs.lr_g,
+        poisoned(g_loss, inputs.poison == Some(Phase::Generator)),
+        ("G_total", "generator"),
+        &mut outcome,
+    ) {
+        outcome.skipped = Some(why);
         return Ok(outcome);
     }
 
@@ -281,20 +319,18 @@ pub fn train_step(
     let Some(d_loss) = d_loss else {
         return Ok(outcome);
     };
-    let d_total = scalar(&d_loss);
-    outcome.losses.insert("D_total", d_total);
-    if !d_total.is_finite() {
-        outcome.skipped = Some(format!("discriminator loss is {d_total}"));
-        return Ok(outcome);
-    }
-    let mut grads = d_loss.backward();
-    let grads = GradientsParams::from_module(&mut grads, &*d);
-    let (d_before, opt_d_before) = (d.clone(), opt_d.clone());
-    *d = opt_d.step(inputs.lr_d, d.clone(), grads);
-    if !all_finite(&*d) {
-        *d = d_before;
-        *opt_d = opt_d_before;
-        outcome.skipped = Some("discriminator weights became non-finite".into());
+    if let Err(why) = guarded_update(
+        d,
+        opt_d,
+        inputs.lr_d,
+        poisoned(d_loss, inputs.poison == Some(Phase::Discriminator)),
+        ("D_total", "discriminator"),
+        &mut outcome,
+    ) {
+        // The whole step is undone, the generator's half included.
+        *g = g_before;
+        *opt_g = opt_g_before;
+        outcome.skipped = Some(why);
     }
     Ok(outcome)
 }

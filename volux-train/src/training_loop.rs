@@ -25,7 +25,7 @@ use crate::metrics::{Averages, MetricsLine, MetricsLog, peak_rss_mib};
 use crate::networks::{Discriminators, ema_beta, materialize, update_ema};
 use crate::sampling;
 use crate::schedule::Stage;
-use crate::step::{StepInputs, train_step};
+use crate::step::{Phase, StepInputs, train_step};
 
 /// Why training stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -40,6 +40,8 @@ pub enum TrainError {
     Model(#[from] GeneratorError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    #[error("sample grid: {0}")]
+    Sample(#[from] sampling::SampleError),
     #[error("{path}: {message}")]
     Io { path: PathBuf, message: String },
     #[error(
@@ -119,7 +121,7 @@ pub struct Trainer {
     metrics: MetricsLog,
     averages: Averages,
     last_checkpoint: Option<PathBuf>,
-    poisoned: Vec<u64>,
+    poisoned: Vec<(u64, Phase)>,
 }
 
 /// Mixes the run's seed with a step number and a purpose.
@@ -244,9 +246,14 @@ impl Trainer {
         ((s.stage1_kimg + s.stage2_kimg) * 1000.0).round() as u64
     }
 
-    /// Test hook: the generator loss of these steps is made NaN.
+    /// The generator being trained.
+    pub fn generator(&self) -> &Generator {
+        &self.nets.g
+    }
+
+    /// Test hook: the loss of this phase of these steps is made NaN.
     #[doc(hidden)]
-    pub fn poison_steps(&mut self, steps: &[u64]) {
+    pub fn poison_steps(&mut self, steps: &[(u64, Phase)]) {
         self.poisoned = steps.to_vec();
     }
 
@@ -298,7 +305,11 @@ impl Trainer {
                 .then_some((c.train.r1_gamma, interval)),
             lr_g: c.train.lr_g,
             lr_d: c.train.lr_d,
-            poison: self.poisoned.contains(&step),
+            poison: self
+                .poisoned
+                .iter()
+                .find(|(s, _)| *s == step)
+                .map(|&(_, phase)| phase),
         };
         let n = &mut self.nets;
         let outcome = train_step(&mut n.g, &mut n.d, &mut n.opt_g, &mut n.opt_d, &inputs)?;
@@ -315,8 +326,7 @@ impl Trainer {
                 c.train.ema_kimg,
                 c.train.ema_rampup,
             );
-            let ema = std::mem::replace(&mut n.ema, n.g.valid());
-            n.ema = update_ema(ema, &n.g.valid(), beta);
+            n.ema = update_ema(n.ema.clone(), &n.g, beta);
             self.averages.add(&outcome.losses);
         }
         Ok(StepReport {
@@ -351,12 +361,15 @@ impl Trainer {
         let device = self.device.clone().inner();
         let seeds = &c.output.grid_seeds;
         let z = sampling::latents(seeds, c.generator().mapping.z_dim, &device);
-        let sets: Vec<&LightMapSet> = seeds.iter().map(|_| &self.lights[0]).collect();
-        let lighting = lighting_tensors(&sets, &vec![0.0; seeds.len()], &device)
-            .map_err(|e| DataError::Lighting(e.to_string()))?;
         let poses = vec![(0.0, 0.0); seeds.len()];
-        let layers =
-            sampling::render_layers(ema, z, &poses, &lighting, c.data.albedo_background())?;
+        let layers = sampling::render_under(
+            ema,
+            z,
+            &poses,
+            &self.lights[0],
+            0.0,
+            c.data.albedo_background(),
+        )?;
         let sheet = sampling::grid(&layers);
         let dir = self.options.out.join("grids");
         std::fs::create_dir_all(&dir).map_err(|e| io_error(&dir, e))?;

@@ -5,9 +5,11 @@ use std::path::Path;
 use std::sync::Mutex;
 
 use volux_model::backend::BackendKind;
+use volux_model::backend::to_f32_vec;
 use volux_train::checkpoint;
 use volux_train::config::TrainConfig;
 use volux_train::schedule::Stage;
+use volux_train::step::Phase;
 use volux_train::training_loop::{Event, Finish, TrainError, TrainOptions, Trainer};
 
 /// Two steps of stage 1 (the upsampler fading in), two of stage 2, batch 2, few samples per
@@ -173,24 +175,39 @@ fn training_runs_both_stages_and_resumes_with_identical_losses() {
 fn non_finite_steps_are_skipped_then_stop_the_run() {
     let _one = ONE_RUN_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = tempfile::tempdir().unwrap();
-    let text = TINY.replace("seed = 3", "seed = 3\nmax_nonfinite = 2");
+    let text = TINY.replace("seed = 3", "seed = 3\nmax_nonfinite = 3");
     let c = config(dir.path(), &text);
     let out = dir.path().join("run");
 
-    // One poisoned step is skipped: nothing changes, the run goes on.
+    // A poisoned step is skipped and changes nothing, the generator included when it is the
+    // discriminator's half that fails; the run goes on.
+    let weights = |t: &Trainer| to_f32_vec(t.generator().mapping.layers[0].weight.val());
     let mut t = Trainer::new(c.clone(), options(&out, false, Some(2))).unwrap();
-    t.poison_steps(&[0]);
+    let initial = weights(&t);
+    t.poison_steps(&[(0, Phase::Discriminator)]);
+    t.step().unwrap();
+    assert_eq!(weights(&t), initial, "a skipped step moved the generator");
+    assert_eq!((t.state().skipped, t.state().images), (1, 0));
+    t.poison_steps(&[(1, Phase::Generator)]);
+    t.step().unwrap();
+    assert_eq!(weights(&t), initial);
+    assert_eq!((t.state().skipped, t.state().nonfinite_in_row), (2, 2));
     let (_, steps) = losses(&mut t);
     assert_eq!(steps.len(), 2);
-    assert_eq!(t.state().skipped, 1);
-    assert_eq!(t.state().images, 2, "the skipped step trained on nothing");
+    assert_eq!(t.state().nonfinite_in_row, 0);
+    assert_eq!(t.state().images, 4, "only the two good steps trained");
+    assert_ne!(weights(&t), initial);
     let good = checkpoint::latest(&out).unwrap();
 
-    // Two in a row stop it with a message naming the last good checkpoint.
+    // Three in a row stop it with a message naming the last good checkpoint.
     let mut t = Trainer::new(c, options(&out, true, None)).unwrap();
-    t.poison_steps(&[2, 3]);
+    t.poison_steps(&[
+        (4, Phase::Generator),
+        (5, Phase::Discriminator),
+        (6, Phase::Generator),
+    ]);
     let e = t.run(&mut |_| {}).expect_err("stopped");
-    assert!(matches!(e, TrainError::NonFinite { count: 2, .. }), "{e}");
+    assert!(matches!(e, TrainError::NonFinite { count: 3, .. }), "{e}");
     let message = e.to_string();
     assert!(message.contains(&good.display().to_string()), "{message}");
     // No checkpoint of the broken state was written.
