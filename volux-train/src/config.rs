@@ -38,6 +38,10 @@ pub struct ModelConfig {
     /// Radius of the sphere prior (0.5 if absent).
     #[serde(default)]
     pub sphere_radius: Option<f64>,
+    /// Octaves of the NeIIF's positional encoding (the preset's 10 if absent). A small volume
+    /// cannot show the top octaves of a 10-octave encoding; they turn into banding.
+    #[serde(default)]
+    pub frequencies: Option<usize>,
 }
 
 impl ModelConfig {
@@ -73,6 +77,12 @@ impl ModelConfig {
                 return Err(format!("model.sphere_radius = {r} must be in (0, 1)"));
             }
             g.neiif.sphere_radius = r;
+        }
+        if let Some(f) = self.frequencies {
+            if !(1..=16).contains(&f) {
+                return Err(format!("model.frequencies = {f} must be in 1..=16"));
+            }
+            g.neiif.frequencies = f;
         }
         if g.renderer.stratified < 2 {
             return Err(format!(
@@ -374,6 +384,10 @@ volume_resolution = 32
             (
                 TINY.replace("\"small\"", "\"small\"\nsphere_radius = 2.0"),
                 "model.sphere_radius",
+            ),
+            (
+                TINY.replace("\"small\"", "\"small\"\nfrequencies = 0"),
+                "model.frequencies",
             ),
             (
                 TINY.replace("resolution = 64", "resolution = 128"),
