@@ -340,6 +340,58 @@ fn train_resume_and_sample_end_to_end() {
         assert!(samples.join(f).is_file(), "{f} missing: {t}");
     }
 
+    // The measurements, on three latents in batches of two (and on the synthetic heads).
+    let eval = dir.path().join("eval");
+    let o = volux(&[
+        "eval",
+        "--checkpoint",
+        run_s,
+        "--samples",
+        "3",
+        "--batch",
+        "2",
+        "--out",
+        eval.to_str().unwrap(),
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    for heading in [
+        "Multi-view consistency",
+        "Relighting consistency",
+        "Geometry",
+        "Sliced Wasserstein",
+    ] {
+        assert!(t.contains(heading), "{heading} missing: {t}");
+    }
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(eval.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(report["samples"], 3);
+    assert_eq!(report["multiview"].as_array().unwrap().len(), 4);
+    assert!(
+        report["multiview"][0]["data"]["consistent"]
+            .as_f64()
+            .unwrap()
+            > 0.5,
+        "{report}"
+    );
+    assert_eq!(report["environments"].as_array().unwrap().len(), 3);
+    assert_eq!(report["swd"][1]["layer"], "normals");
+    for f in [
+        "multiview",
+        "relighting",
+        "rotating-light",
+        "multiview-data",
+        "rotating-light-data",
+    ] {
+        assert!(eval.join(format!("{f}.png")).is_file(), "{f} missing: {t}");
+    }
+    let bad = volux(&["eval", "--checkpoint", run_s, "--yaw-rad", "0"]);
+    assert!(
+        !bad.status.success() && text(&bad).contains("--yaw-rad 0"),
+        "{}",
+        text(&bad)
+    );
+
     // A resume with a changed model is refused, naming both.
     std::fs::write(
         dir.path().join("tiny.toml"),

@@ -2,7 +2,9 @@
 
 mod backend;
 mod data;
+mod environment;
 mod envmap;
+mod eval;
 mod model;
 mod sample;
 mod train;
@@ -37,6 +39,9 @@ pub enum Command {
     /// Render a checkpoint: layer grids, several cameras, EXR layers, rotating-light and
     /// rotating-camera GIFs, latent interpolations.
     Sample(sample::SampleArgs),
+    /// Measure a checkpoint: multi-view and relighting consistency, geometry, sliced
+    /// Wasserstein distance to the data, the same on the synthetic data; table, JSON, figures.
+    Eval(eval::EvalArgs),
     /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
     Backend(backend::BackendArgs),
 }
@@ -48,6 +53,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Data(cmd) => data::run(cmd),
         Command::Train(args) => train::run(args),
         Command::Sample(args) => sample::run(args),
+        Command::Eval(args) => eval::run(args),
         Command::Backend(args) => backend::run(args),
     }
 }

@@ -8,14 +8,14 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::Args;
 use volux_data::contact_sheet::ContactSheet;
-use volux_data::hdri_collection::BUILTIN_HDRIS;
-use volux_envmap::{EnvMap, LightMapSet, PreconvolveOptions, io, preconvolve};
+use volux_envmap::io;
 use volux_model::backend::BackendKind;
 use volux_train::animation::save_gif;
 use volux_train::sampling::{self, SampleLayers};
 use volux_train::training_loop::load_for_sampling;
 
 use super::data::parse_seeds;
+use super::environment::environments;
 
 #[derive(Debug, Args)]
 pub struct SampleArgs {
@@ -61,40 +61,6 @@ pub struct SampleArgs {
     pub out: PathBuf,
 }
 
-/// An environment's light maps and a short name for file names.
-struct Environment {
-    name: String,
-    lights: LightMapSet,
-}
-
-fn environments(files: &[PathBuf]) -> anyhow::Result<Vec<Environment>> {
-    let options = PreconvolveOptions::default();
-    let make = |name: String, map: EnvMap| -> anyhow::Result<Environment> {
-        let lights =
-            preconvolve(&map, &options).with_context(|| format!("preconvolving {name}"))?;
-        Ok(Environment { name, lights })
-    };
-    if files.is_empty() {
-        let h = BUILTIN_HDRIS
-            .iter()
-            .find(|h| h.name == "sunrise")
-            .expect("sunrise is shipped");
-        return Ok(vec![make(
-            h.name.into(),
-            io::load_bytes(h.bytes, Path::new(h.path))?,
-        )?]);
-    }
-    files
-        .iter()
-        .map(|p| {
-            let name = p
-                .file_stem()
-                .map_or("env".into(), |s| s.to_string_lossy().into_owned());
-            make(name, io::load(p)?)
-        })
-        .collect()
-}
-
 /// The relit images side by side in one row.
 fn strip(layers: &SampleLayers) -> ContactSheet {
     let s = layers.side;
@@ -105,7 +71,7 @@ fn strip(layers: &SampleLayers) -> ContactSheet {
     sheet
 }
 
-fn save_sheet(path: &Path, sheet: &ContactSheet) -> anyhow::Result<()> {
+pub(super) fn save_sheet(path: &Path, sheet: &ContactSheet) -> anyhow::Result<()> {
     io::save_png(path, sheet.width(), sheet.height(), &sheet.to_u8())?;
     println!("wrote {}", path.display());
     Ok(())
@@ -156,7 +122,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
         dir.display(),
         config.model.preset
     );
-    let envs = environments(&args.hdri)?;
+    let envs = environments(&args.hdri, &["sunrise"])?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let bg = config.data.albedo_background();

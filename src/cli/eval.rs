@@ -1,0 +1,110 @@
+//! `volux eval`: the consistency measurements of a checkpoint's EMA generator (multi-view,
+//! relighting, geometry), its sliced Wasserstein distance to the training data, the same
+//! measurements on the synthetic data, a table, `eval.json` and figure strips.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use clap::Args;
+use volux_eval::evaluate::{EvalOptions, evaluate};
+use volux_model::backend::BackendKind;
+use volux_train::checkpoint;
+use volux_train::training_loop::load_for_sampling;
+
+use super::environment::environments;
+use super::sample::save_sheet;
+
+/// The shipped maps the relighting measurement uses when no `--hdri` is given.
+const DEFAULT_ENVIRONMENTS: [&str; 3] = ["sunrise", "studio", "forest"];
+
+#[derive(Debug, Args)]
+pub struct EvalArgs {
+    /// A checkpoint folder, or a run folder (its newest checkpoint is used).
+    #[arg(long)]
+    pub checkpoint: PathBuf,
+    /// Latents (and synthetic heads, and dataset images) per measurement.
+    #[arg(long, default_value_t = 100)]
+    pub samples: usize,
+    /// Seed of the first latent; the others follow.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Side-view yaws in radians, compared with the frontal view (comma-separated).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        allow_hyphen_values = true,
+        default_value = "-0.5,-0.25,0.25,0.5"
+    )]
+    pub yaw_rad: Vec<f64>,
+    /// Environment maps (EXR or HDR) for the relighting measurement; the first also lights the
+    /// multi-view one. Default: the shipped sunrise, studio and forest maps.
+    #[arg(long)]
+    pub hdri: Vec<PathBuf>,
+    /// Largest depth disagreement (world units) of a consistent reprojection.
+    #[arg(long, default_value_t = volux_eval::reprojection::DEFAULT_TOLERANCE)]
+    pub tolerance: f64,
+    /// Images per generator forward pass.
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    /// Compute backend: cpu or wgpu.
+    #[arg(long, default_value = "cpu")]
+    pub backend: BackendKind,
+    /// Output folder (eval.json and the figures).
+    #[arg(long, default_value = "eval")]
+    pub out: PathBuf,
+}
+
+pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+    if !(1..=10_000).contains(&args.samples) {
+        bail!("--samples {}: give 1 to 10000", args.samples);
+    }
+    if !(1..=256).contains(&args.batch) {
+        bail!("--batch {}: give 1 to 256", args.batch);
+    }
+    if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
+        bail!("--tolerance {} must be positive", args.tolerance);
+    }
+    if let Some(y) = args
+        .yaw_rad
+        .iter()
+        .find(|y| !y.is_finite() || **y == 0.0 || y.abs() > 1.5)
+    {
+        bail!("--yaw-rad {y}: side views need a non-zero yaw within [-1.5, 1.5] radians");
+    }
+    let (g, config, dir, device) = load_for_sampling(&args.checkpoint, args.backend)?;
+    let state = checkpoint::read_state(&dir)?;
+    println!(
+        "checkpoint {} ({} model, {:.2} kimg)",
+        dir.display(),
+        config.model.preset,
+        state.images as f64 / 1000.0
+    );
+    let mut options = EvalOptions::new(environments(&args.hdri, &DEFAULT_ENVIRONMENTS)?);
+    options.samples = args.samples;
+    options.first_seed = args.seed;
+    options.yaws = args.yaw_rad.clone();
+    options.tolerance = args.tolerance;
+    options.batch = args.batch;
+    let evaluation = evaluate(
+        &g,
+        &device,
+        &config,
+        &dir.display().to_string(),
+        state.images,
+        &options,
+    )?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    print!("{}", evaluation.report.to_table());
+    let json = args.out.join("eval.json");
+    let text = serde_json::to_string_pretty(&evaluation.report)?;
+    std::fs::write(&json, text + "\n").with_context(|| format!("writing {}", json.display()))?;
+    println!("wrote {}", json.display());
+    for figure in &evaluation.figures {
+        save_sheet(
+            &args.out.join(format!("{}.png", figure.name)),
+            &figure.sheet,
+        )?;
+    }
+    Ok(())
+}
