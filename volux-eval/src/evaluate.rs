@@ -479,7 +479,6 @@ pub fn evaluate(
     };
     let swd = sample_quality(g, device, config, options, z_dim)?;
 
-    let view = |r: &Reprojection| ViewScore::of(r);
     let multiview = options
         .yaws
         .iter()
@@ -487,8 +486,8 @@ pub fn evaluate(
         .map(|(j, &yaw)| MultiViewRow {
             yaw,
             scores: Pair {
-                model: view(&measured.multiview[j]),
-                data: data.as_ref().map(|(d, _)| view(&d.multiview[j])),
+                model: ViewScore::of(&measured.multiview[j]),
+                data: data.as_ref().map(|(d, _)| ViewScore::of(&d.multiview[j])),
             },
         })
         .collect();

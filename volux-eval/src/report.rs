@@ -16,6 +16,13 @@ pub struct Pair<T> {
     pub data: Option<T>,
 }
 
+impl<T> Pair<T> {
+    /// `("model", model)`, then `("data", data)` when there is one.
+    pub fn rows(&self) -> impl Iterator<Item = (&'static str, &T)> {
+        std::iter::once(("model", &self.model)).chain(self.data.iter().map(|d| ("data", d)))
+    }
+}
+
 /// Photometric agreement of a side view warped into the frontal view.
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct ViewScore {
@@ -103,13 +110,6 @@ impl EvalReport {
     /// The report as aligned plain-text tables.
     pub fn to_table(&self) -> String {
         let mut s = String::new();
-        let sources = |data: bool| {
-            if data {
-                ["model", "data"].as_slice()
-            } else {
-                ["model"].as_slice()
-            }
-        };
         let _ = writeln!(
             s,
             "Multi-view consistency: {} samples, side views warped into the frontal view (depth tolerance {})",
@@ -121,13 +121,7 @@ impl EvalReport {
             "yaw", "", "albedo PSNR", "albedo L1", "relit PSNR", "relit L1", "consistent"
         );
         for row in &self.multiview {
-            for &source in sources(row.scores.data.is_some()) {
-                let v = if source == "model" {
-                    Some(&row.scores.model)
-                } else {
-                    row.scores.data.as_ref()
-                };
-                let Some(v) = v else { continue };
+            for (source, v) in row.scores.rows() {
                 let _ = writeln!(
                     s,
                     "  {:>6.2}  {:<6} {:>12.2} {:>10.4} {:>11.2} {:>9.4} {:>11}",
@@ -151,19 +145,12 @@ impl EvalReport {
             "  {:<6} {:>10} {:>11} {:>11}",
             "", "albedo L1", "albedo max", "normals L1"
         );
-        for &source in sources(self.invariance.data.is_some()) {
-            let v = if source == "model" {
-                Some(&self.invariance.model)
-            } else {
-                self.invariance.data.as_ref()
-            };
-            if let Some(v) = v {
-                let _ = writeln!(
-                    s,
-                    "  {:<6} {:>10.2e} {:>11.2e} {:>11.2e}",
-                    source, v.albedo_l1, v.albedo_max, v.normals_l1
-                );
-            }
+        for (source, v) in self.invariance.rows() {
+            let _ = writeln!(
+                s,
+                "  {:<6} {:>10.2e} {:>11.2e} {:>11.2e}",
+                source, v.albedo_l1, v.albedo_max, v.normals_l1
+            );
         }
         let _ = writeln!(s, "  relit against tonemap(A D + S):");
         let _ = writeln!(
@@ -172,19 +159,12 @@ impl EvalReport {
             "environment", "", "PSNR", "L1"
         );
         for row in &self.shading {
-            for &source in sources(row.scores.data.is_some()) {
-                let v = if source == "model" {
-                    Some(&row.scores.model)
-                } else {
-                    row.scores.data.as_ref()
-                };
-                if let Some(v) = v {
-                    let _ = writeln!(
-                        s,
-                        "  {:<12} {:<6} {:>6.2} {:>8.4}",
-                        row.environment, source, v.psnr, v.l1
-                    );
-                }
+            for (source, v) in row.scores.rows() {
+                let _ = writeln!(
+                    s,
+                    "  {:<12} {:<6} {:>6.2} {:>8.4}",
+                    row.environment, source, v.psnr, v.l1
+                );
             }
         }
         let _ = writeln!(
@@ -196,23 +176,16 @@ impl EvalReport {
             "  {:<6} {:>8} {:>10} {:>12} {:>8}",
             "", "pixels", "mean deg", "median deg", "<= 10"
         );
-        for &source in sources(self.geometry.data.is_some()) {
-            let v = if source == "model" {
-                Some(&self.geometry.model)
-            } else {
-                self.geometry.data.as_ref()
-            };
-            if let Some(v) = v {
-                let _ = writeln!(
-                    s,
-                    "  {:<6} {:>8} {:>10.2} {:>12.2} {:>8}",
-                    source,
-                    v.pixels,
-                    v.mean_degrees,
-                    v.median_degrees,
-                    percent(v.within_10_degrees)
-                );
-            }
+        for (source, v) in self.geometry.rows() {
+            let _ = writeln!(
+                s,
+                "  {:<6} {:>8} {:>10.2} {:>12.2} {:>8}",
+                source,
+                v.pixels,
+                v.mean_degrees,
+                v.median_degrees,
+                percent(v.within_10_degrees)
+            );
         }
         let _ = writeln!(
             s,
@@ -244,5 +217,27 @@ impl EvalReport {
         }
         let _ = writeln!(s, "\n{:.1} s", self.seconds);
         s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pair_lists_the_data_row_only_when_there_is_one() {
+        let both = Pair {
+            model: 1,
+            data: Some(2),
+        };
+        assert_eq!(
+            both.rows().collect::<Vec<_>>(),
+            vec![("model", &1), ("data", &2)]
+        );
+        let model = Pair {
+            model: 1,
+            data: None,
+        };
+        assert_eq!(model.rows().collect::<Vec<_>>(), vec![("model", &1)]);
     }
 }

@@ -367,6 +367,19 @@ volume_resolution = 32
         assert_eq!((c.train.beta1, c.train.beta2), (0.0, 0.99));
         assert_eq!(c.loss, LossWeights::default());
         assert_eq!(c.blocks(), 1);
+        assert_eq!(c.generator().neiif.frequencies, 10);
+    }
+
+    #[test]
+    fn model_overrides_reach_the_generator() {
+        let text = TINY.replace(
+            "\"small\"",
+            "\"small\"\nstratified = 6\nimportance = 3\nsphere_prior = 10.0\nsphere_radius = 0.35\nfrequencies = 4",
+        );
+        let g = load(&text).unwrap().generator();
+        assert_eq!((g.renderer.stratified, g.renderer.importance), (6, 3));
+        assert_eq!((g.neiif.sphere_prior, g.neiif.sphere_radius), (10.0, 0.35));
+        assert_eq!(g.neiif.frequencies, 4);
     }
 
     #[test]
