@@ -2,7 +2,6 @@
 //! environments, the same measurements on the synthetic dataset's exact renders, the sliced
 //! Wasserstein distance against the training data, and figure strips.
 
-use std::sync::Arc;
 use std::time::Instant;
 
 use burn::tensor::Device;
@@ -365,7 +364,7 @@ fn sample_quality(
 ) -> Result<Vec<SwdRow>, EvalError> {
     let bank = config.data.light_bank()?;
     let examples = Examples::open(&config.data, &config.data_hashed, &bank)?;
-    let lights = Arc::new(bank.sets().to_vec());
+    let lights = bank.sets();
     let (side, side_lo) = (g.output_resolution(), g.volume_resolution);
     let empty = || {
         [
