@@ -199,6 +199,15 @@ impl DataConfig {
         }
     }
 
+    /// Whether examples carry their camera pose: the synthetic heads do, a folder dataset
+    /// only with a `poses.csv` (without one every photo is frontal, `(0, 0)`).
+    pub fn has_poses(&self) -> bool {
+        match &self.source {
+            SourceConfig::Synthetic { .. } => true,
+            SourceConfig::Folder { path, .. } => FolderDataset::has_poses_file(path),
+        }
+    }
+
     /// The light maps of the configured collection (through the light-map cache, if any).
     pub fn light_bank(&self) -> Result<LightMapBank, DataError> {
         let collection = HdriCollection::from_config(&self.lighting)
@@ -350,15 +359,6 @@ impl Dataset {
         &self.lights
     }
 
-    /// Draws an environment and a rotation.
-    pub fn draw_lighting(&self, rng: &mut SplitMix64) -> LightingDraw {
-        let map = (rng.next_u64() % self.lights.len() as u64) as usize;
-        LightingDraw {
-            map,
-            yaw: std::f64::consts::TAU * rng.next_f64(),
-        }
-    }
-
     /// Example `index`.
     pub fn example(&self, index: u64) -> Result<TrainingSample, DataError> {
         let mut rng = SplitMix64::new(mix(self.seed, index));
@@ -383,7 +383,7 @@ impl Dataset {
             } => {
                 let identity = rng.next_u64() % identities;
                 let pose = poses.sample(&mut rng);
-                let draw = self.draw_lighting(&mut rng);
+                let draw = LightingDraw::sample(self.lights.len(), &mut rng);
                 let head = SyntheticHead::from_seed(identity);
                 let render = synthetic_head::render(&head, pose, settings);
                 let intrinsics = Intrinsics::Synthetic {
@@ -397,7 +397,7 @@ impl Dataset {
                 specular_weights,
             } => {
                 let i = (rng.next_u64() % dataset.len() as u64) as usize;
-                let draw = self.draw_lighting(&mut rng);
+                let draw = LightingDraw::sample(self.lights.len(), &mut rng);
                 let loaded = dataset.load(i)?;
                 let stem = loaded.stem;
                 let (image, photo) =
@@ -413,6 +413,7 @@ impl Dataset {
                     image: &image,
                     photo: &photo,
                     specular_weights,
+                    over_background: dataset.has_mask(i),
                 };
                 finish(intrinsics, draw, &stem)
             }
@@ -714,6 +715,73 @@ mod tests {
         assert!((small_photo[0][0] - 0.5).abs() < 1e-6);
         assert_eq!(fit(image.clone(), photo.clone(), 3).unwrap_err(), (4, 4));
         assert_eq!(fit(image, photo, 4).unwrap().0.width, 4);
+    }
+
+    #[test]
+    fn folder_photos_with_masks_are_composited_over_the_background_like_the_relit_image() {
+        use crate::folder_dataset::{FolderSample, write_dataset};
+        let side = 8;
+        let n = side * side;
+        let mask: Vec<f32> = (0..n).map(|i| f32::from(u8::from(i % side < 5))).collect();
+        let sample = FolderSample {
+            stem: "face".into(),
+            photo: vec![[0.2, 0.6, 0.4]; n],
+            image: IntrinsicImage {
+                width: side,
+                height: side,
+                albedo: vec![[0.5; 3]; n],
+                normals: mask.iter().map(|&m| [0.0, 0.0, m]).collect(),
+                mask: mask.clone(),
+                pose: (0.0, 0.0),
+            },
+            renormalised: 0,
+            degenerate: 0,
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("faces");
+        write_dataset(&root, &[sample]).unwrap();
+        let config = |root: &Path| DataConfig {
+            background: [1.0, 0.0, 0.0],
+            resolution: side,
+            volume_resolution: side / 2,
+            source: SourceConfig::Folder {
+                path: root.to_path_buf(),
+                specular_weights: DEFAULT_SPECULAR_WEIGHTS,
+            },
+            ..toml::from_str("").unwrap()
+        };
+        let example = Dataset::new(&config(&root), bank())
+            .unwrap()
+            .example(0)
+            .unwrap();
+        for (i, &m) in mask.iter().enumerate() {
+            let want = if m > 0.0 {
+                [0.2, 0.6, 0.4]
+            } else {
+                [1.0, 0.0, 0.0]
+            };
+            let got = example.photo[i];
+            assert!(
+                (0..3).all(|k| (got[k] - want[k]).abs() < 3e-3),
+                "pixel {i}: {got:?}"
+            );
+            if m == 0.0 {
+                assert_eq!(example.relit[i], example.photo[i], "pixel {i}");
+            }
+        }
+        // Without mask files (the mask then comes from the normals' length) the photo keeps
+        // its own background.
+        std::fs::remove_dir_all(root.join("masks")).unwrap();
+        let example = Dataset::new(&config(&root), bank())
+            .unwrap()
+            .example(0)
+            .unwrap();
+        assert!(
+            example
+                .photo
+                .iter()
+                .all(|p| (0..3).all(|k| (p[k] - [0.2, 0.6, 0.4][k]).abs() < 3e-3))
+        );
     }
 
     #[test]

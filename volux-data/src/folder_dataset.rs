@@ -284,6 +284,7 @@ pub struct FolderDataset {
     root: PathBuf,
     entries: Vec<SampleFiles>,
     ignored: Vec<PathBuf>,
+    has_poses: bool,
 }
 
 /// One decoded sample of a folder dataset.
@@ -387,9 +388,9 @@ impl FolderDataset {
             );
         }
 
-        let poses_path = root.join(POSES_FILE);
-        let poses = if poses_path.exists() {
-            Some(read_poses(&poses_path, &photos)?)
+        let has_poses = FolderDataset::has_poses_file(root);
+        let poses = if has_poses {
+            Some(read_poses(&root.join(POSES_FILE), &photos)?)
         } else {
             None
         };
@@ -408,7 +409,13 @@ impl FolderDataset {
             root: root.to_path_buf(),
             entries,
             ignored,
+            has_poses,
         })
+    }
+
+    /// Whether the dataset at `root` has a `poses.csv` (checked without listing it).
+    pub fn has_poses_file(root: &Path) -> bool {
+        root.join(POSES_FILE).exists()
     }
 
     /// The dataset's root folder.
@@ -434,6 +441,17 @@ impl FolderDataset {
     /// Camera pose `(yaw, pitch)` of sample `i`, radians. Panics if `i >= len()`.
     pub fn pose(&self, i: usize) -> (f64, f64) {
         self.entries[i].pose
+    }
+
+    /// Whether sample `i` has a mask file (without one its mask is derived from the normal
+    /// map's length). Panics if `i >= len()`.
+    pub fn has_mask(&self, i: usize) -> bool {
+        self.entries[i].mask.is_some()
+    }
+
+    /// Whether the dataset has a `poses.csv` (without one every photo is frontal).
+    pub fn has_poses(&self) -> bool {
+        self.has_poses
     }
 
     /// Files in the layout's folders that are not part of it (unknown extensions, folders),

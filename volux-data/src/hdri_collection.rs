@@ -365,13 +365,6 @@ pub enum HdriError {
     EnvMap(#[from] EnvMapError),
 }
 
-/// One draw: which entry, and the yaw (radians, `[0, 2 pi)`) to rotate it by.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct HdriDraw {
-    pub index: usize,
-    pub yaw: f64,
-}
-
 /// A non-empty list of environments.
 #[derive(Clone, Debug, PartialEq)]
 pub struct HdriCollection {
@@ -445,14 +438,6 @@ impl HdriCollection {
     /// Always false: a collection is never empty.
     pub fn is_empty(&self) -> bool {
         self.entries.is_empty()
-    }
-
-    /// An entry uniformly at random and a yaw uniform in `[0, 2 pi)`.
-    pub fn draw(&self, rng: &mut SplitMix64) -> HdriDraw {
-        // Modulo bias is below len / 2^64.
-        let index = (rng.next_u64() % self.entries.len() as u64) as usize;
-        let yaw = TAU * rng.next_f64();
-        HdriDraw { index, yaw }
     }
 }
 
@@ -774,34 +759,6 @@ mod tests {
                 let at = lum(glossy.lookup(l.direction));
                 assert!(at > 3.0 * mean, "studio {i} light {k}: {at} vs mean {mean}");
             }
-        }
-    }
-
-    #[test]
-    fn draws_cover_the_collection_with_yaw_in_range() {
-        let collection = HdriCollection::from_config(&HdriCollectionConfig::default()).unwrap();
-        assert_eq!(collection.len(), 24);
-        let mut rng = SplitMix64::new(11);
-        let mut seen = vec![0usize; collection.len()];
-        let (mut min_yaw, mut max_yaw) = (f64::INFINITY, 0.0f64);
-        let draws = 24_000;
-        for _ in 0..draws {
-            let d = collection.draw(&mut rng);
-            seen[d.index] += 1;
-            assert!((0.0..TAU).contains(&d.yaw), "{d:?}");
-            min_yaw = min_yaw.min(d.yaw);
-            max_yaw = max_yaw.max(d.yaw);
-        }
-        // Uniform: about 1000 each (binomial sd about 31).
-        assert!(seen.iter().all(|&n| (850..1150).contains(&n)), "{seen:?}");
-        assert!(
-            min_yaw < 0.01 && max_yaw > TAU - 0.01,
-            "{min_yaw} {max_yaw}"
-        );
-        // The same seed draws the same sequence.
-        let (mut a, mut b) = (SplitMix64::new(5), SplitMix64::new(5));
-        for _ in 0..10 {
-            assert_eq!(collection.draw(&mut a), collection.draw(&mut b));
         }
     }
 

@@ -13,6 +13,7 @@
 //! over `factor x factor` blocks).
 
 use volux_envmap::io::srgb_to_linear;
+use volux_envmap::report::SplitMix64;
 use volux_envmap::{LightMap, Rgb};
 
 use crate::relighting::{IntrinsicImage, RelightError, SpecularWeights, relight_weighted};
@@ -25,6 +26,20 @@ pub struct LightingDraw {
     pub map: usize,
     /// Rotation of the environment about +y, radians in `[0, 2 pi)`.
     pub yaw: f64,
+}
+
+impl LightingDraw {
+    /// One of `environments` environments uniformly at random (modulo bias below
+    /// `environments / 2^64`), rotated by a yaw uniform in `[0, 2 pi)`: the draw that lights
+    /// every training example.
+    pub fn sample(environments: usize, rng: &mut SplitMix64) -> LightingDraw {
+        assert!(environments > 0, "a draw needs at least one environment");
+        let map = (rng.next_u64() % environments as u64) as usize;
+        LightingDraw {
+            map,
+            yaw: std::f64::consts::TAU * rng.next_f64(),
+        }
+    }
 }
 
 /// Where a sample's intrinsic layers and photo come from.
@@ -40,6 +55,10 @@ pub enum Intrinsics<'a> {
         image: &'a IntrinsicImage,
         photo: &'a [Rgb],
         specular_weights: &'a [f32],
+        /// Composite the photo over the background with the image's mask, as the relit
+        /// image is (so D_P and D_S ask for the same background). Only for a mask that was
+        /// given: one derived from the normals' length is not trusted with the photo.
+        over_background: bool,
     },
 }
 
@@ -109,6 +128,7 @@ pub fn make_sample(
             image,
             photo,
             specular_weights,
+            over_background,
         } => {
             if photo.len() != side * side {
                 return Err(SampleError::PhotoSize {
@@ -118,7 +138,12 @@ pub fn make_sample(
             }
             let weights = SpecularWeights::Uniform(specular_weights);
             let layers = relight_weighted(image, lights, weights, draw.yaw, &camera, background)?;
-            (layers, photo.to_vec())
+            let photo = if over_background {
+                composite(photo, &image.mask, background)
+            } else {
+                photo.to_vec()
+            };
+            (layers, photo)
         }
     };
     let bg_albedo = background.map(srgb_to_linear);
@@ -150,6 +175,16 @@ pub fn make_sample(
     })
 }
 
+/// `photo` (sRGB) over `background` (sRGB) with coverage `mask`, blended in sRGB as the
+/// relit image is.
+pub fn composite(photo: &[Rgb], mask: &[f32], background: Rgb) -> Vec<Rgb> {
+    photo
+        .iter()
+        .zip(mask)
+        .map(|(p, &m)| std::array::from_fn(|k| m * p[k] + (1.0 - m) * background[k]))
+        .collect()
+}
+
 /// Box-filter downsampling of a square `side x side` layer by `factor`.
 pub fn area_downsample(layer: &[[f32; 3]], side: usize, factor: usize) -> Vec<[f32; 3]> {
     let lo = side / factor;
@@ -172,6 +207,37 @@ mod tests {
     use super::*;
     use crate::synthetic_head::RenderSettings;
     use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
+
+    #[test]
+    fn draws_cover_the_environments_with_yaw_in_range() {
+        use std::f64::consts::TAU;
+        let environments = 24;
+        let mut rng = SplitMix64::new(11);
+        let mut seen = vec![0usize; environments];
+        let (mut min_yaw, mut max_yaw) = (f64::INFINITY, 0.0f64);
+        let draws = 24_000;
+        for _ in 0..draws {
+            let d = LightingDraw::sample(environments, &mut rng);
+            seen[d.map] += 1;
+            assert!((0.0..TAU).contains(&d.yaw), "{d:?}");
+            min_yaw = min_yaw.min(d.yaw);
+            max_yaw = max_yaw.max(d.yaw);
+        }
+        // Uniform: about 1000 each (binomial sd about 31).
+        assert!(seen.iter().all(|&n| (850..1150).contains(&n)), "{seen:?}");
+        assert!(
+            min_yaw < 0.01 && max_yaw > TAU - 0.01,
+            "{min_yaw} {max_yaw}"
+        );
+        // The same seed draws the same sequence.
+        let (mut a, mut b) = (SplitMix64::new(5), SplitMix64::new(5));
+        for _ in 0..10 {
+            assert_eq!(
+                LightingDraw::sample(environments, &mut a),
+                LightingDraw::sample(environments, &mut b)
+            );
+        }
+    }
 
     #[test]
     fn area_downsampling_averages_blocks() {
@@ -253,6 +319,7 @@ mod tests {
             image: &image,
             photo,
             specular_weights: &weights,
+            over_background: false,
         };
         assert_eq!(
             make_sample(intrinsics(&photo), &lights, draw, [0.0; 3], 4).unwrap_err(),

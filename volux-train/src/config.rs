@@ -10,6 +10,9 @@ use volux_model::discriminator::DiscriminatorConfig;
 use volux_model::generator::GeneratorConfig;
 use volux_model::presets::{DiscriminatorRole, Preset};
 
+use volux_data::pose_distribution::PoseDistribution;
+
+use crate::fake_poses::FakePoses;
 use crate::losses::LossWeights;
 use crate::schedule::ScheduleConfig;
 
@@ -126,6 +129,11 @@ pub struct OptimConfig {
     pub max_nonfinite: usize,
     /// Batches prepared ahead of the step on a background thread.
     pub prefetch: usize,
+    /// Where the fakes' cameras come from: `auto` (the reals' poses if the dataset has
+    /// poses, else the prior), `dataset`, `prior` or `swap` (the reals' poses, shifted by one).
+    pub fake_poses: FakePoses,
+    /// The camera prior of the fakes (`[train.pose_prior]`; pi-GAN's CelebA values).
+    pub pose_prior: PoseDistribution,
 }
 
 impl Default for OptimConfig {
@@ -143,6 +151,8 @@ impl Default for OptimConfig {
             ema_rampup: 0.05,
             max_nonfinite: 10,
             prefetch: 2,
+            fake_poses: FakePoses::Auto,
+            pose_prior: PoseDistribution::default(),
         }
     }
 }
@@ -292,6 +302,9 @@ impl TrainConfig {
                 return Err(format!("train.{key} = {v} must be in [0, 1)"));
             }
         }
+        t.pose_prior
+            .validate()
+            .map_err(|e| format!("train.pose_prior.{e}"))?;
         if t.max_nonfinite == 0 {
             return Err("train.max_nonfinite must be at least 1".into());
         }

@@ -5,7 +5,9 @@
 //! - [`losses`]: non-saturating logistic losses, lazy R1, the path loss, the shading
 //!   discriminator's condition, loss weights.
 //! - [`schedule`]: stage 1 with progressive growing, stage 2 end to end, which terms run.
+//! - [`progressive`]: the high-resolution albedo discriminator growing with the upsampler.
 //! - [`networks`]: the discriminators a config needs, the generator's moving average.
+//! - [`fake_poses`]: the cameras of the fakes (the dataset's poses, a prior, or swapped).
 //! - [`step`]: one generator phase and one discriminator phase, skipping non-finite steps.
 //! - [`training_loop`]: the [`training_loop::Trainer`] (data, schedule, EMA, metrics, grids,
 //!   checkpoints, resume).
@@ -17,9 +19,11 @@
 pub mod animation;
 pub mod checkpoint;
 pub mod config;
+pub mod fake_poses;
 pub mod losses;
 pub mod metrics;
 pub mod networks;
+pub mod progressive;
 pub mod sampling;
 pub mod schedule;
 pub mod step;

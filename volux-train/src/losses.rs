@@ -10,6 +10,7 @@ use burn::tensor::Tensor;
 use burn::tensor::activation::softplus;
 use serde::Deserialize;
 use volux_model::discriminator::{Discriminator, r1_penalty};
+use volux_model::upsampler::bilinear_upsample;
 
 /// Generator loss against one discriminator: `mean softplus(-D(fake))`.
 pub fn generator_loss(fake_logits: Tensor<2>) -> Tensor<1> {
@@ -60,6 +61,39 @@ pub fn shading_condition(relit: Tensor<4>, diffuse: Tensor<4>, specular: Tensor<
     Tensor::cat(
         vec![relit, diffuse.detach().log1p(), specular.detach().log1p()],
         1,
+    )
+}
+
+/// `D_S`'s condition from shading at the volume resolution, as the generator makes it: the
+/// diffuse and specular maps upsampled bilinearly to the relit image's resolution (the
+/// relighting network sees the same upsampled maps). `[b, 9, H, W]`.
+pub fn shading_condition_lo(
+    relit: Tensor<4>,
+    diffuse_lo: Tensor<4>,
+    specular_lo: Tensor<4>,
+) -> Tensor<4> {
+    let factor = relit.dims()[2] / diffuse_lo.dims()[2];
+    shading_condition(
+        relit,
+        bilinear_upsample(diffuse_lo.detach(), factor),
+        bilinear_upsample(specular_lo.detach(), factor),
+    )
+}
+
+/// `D_S`'s condition for the reals: their diffuse and specular maps, given at the output
+/// resolution, are area-averaged to the volume resolution (`factor` times smaller) and then
+/// treated exactly as the fakes' ([`shading_condition_lo`]), so `D_S` cannot tell the two
+/// apart by detail the generator's shading cannot have.
+pub fn real_shading_condition(
+    relit: Tensor<4>,
+    diffuse: Tensor<4>,
+    specular: Tensor<4>,
+    factor: usize,
+) -> Tensor<4> {
+    shading_condition_lo(
+        relit,
+        area_downsample(diffuse, factor),
+        area_downsample(specular, factor),
     )
 }
 
@@ -118,7 +152,8 @@ impl LossWeights {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::tensor::{Device, TensorData};
+    use burn::tensor::{Device, Distribution, TensorData};
+    use volux_model::backend::to_f32_vec;
 
     fn t2(v: &[f32]) -> Tensor<2> {
         Tensor::<1>::from_floats(v, &Device::flex()).reshape([v.len(), 1])
@@ -216,6 +251,34 @@ mod tests {
         let grads = x.sum().backward();
         assert!(relit.grad(&grads).is_some());
         assert!(d.grad(&grads).is_none() && s.grad(&grads).is_none());
+    }
+
+    #[test]
+    fn reals_and_fakes_with_the_same_shading_reach_d_s_identical() {
+        let device = Device::flex();
+        device.seed(8);
+        let random = |c, side| {
+            Tensor::<4>::random([2, c, side, side], Distribution::Uniform(0.0, 4.0), &device)
+        };
+        let (relit, d_hi, s_hi) = (random(3, 16), random(3, 16), random(3, 16));
+        // The generator renders the shading at the volume resolution; the data's is given at
+        // the output resolution. With the same content, D_S sees the same input.
+        let d_lo = area_downsample(d_hi.clone(), 2);
+        let s_lo = area_downsample(s_hi.clone(), 2);
+        let fake = shading_condition_lo(relit.clone(), d_lo, s_lo);
+        let real = real_shading_condition(relit.clone(), d_hi.clone(), s_hi.clone(), 2);
+        assert_eq!(fake.dims(), [2, 9, 16, 16]);
+        let (f, r) = (to_f32_vec(fake), to_f32_vec(real));
+        assert!(f.iter().zip(&r).all(|(a, b)| a == b));
+        // Given to D_S at the output resolution as they are, the reals would differ by
+        // detail the generator's shading cannot have.
+        let sharp = to_f32_vec(shading_condition(relit, d_hi, s_hi));
+        let differ = f
+            .iter()
+            .zip(&sharp)
+            .filter(|(a, b)| (*a - *b).abs() > 1e-3)
+            .count();
+        assert!(differ > f.len() / 4, "{differ} of {}", f.len());
     }
 
     #[test]

@@ -8,6 +8,12 @@ use serde::Deserialize;
 
 use crate::losses::LossWeights;
 
+/// The paper's schedule ("Implementation Details"): 1M iterations of stage 1 and 500k more of
+/// stage 2, at batch 24.
+pub const PAPER_ITERATIONS: (u64, u64) = (1_000_000, 500_000);
+/// The paper's batch.
+pub const PAPER_BATCH: u64 = 24;
+
 /// Stage lengths (`[schedule]` in a training config), in thousands of images.
 #[derive(Clone, Copy, Debug, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -16,17 +22,30 @@ pub struct ScheduleConfig {
     pub stage2_kimg: f64,
     /// Images over which each upsampling block fades in (within stage 1, one after another).
     pub fade_kimg: f64,
+    /// Whether the high-resolution albedo discriminator grows with the upsampler: while a
+    /// block fades in, its inputs (real and fake) have the ungrown resolutions faded out
+    /// in the same way (PGGAN; see [`crate::progressive`]).
+    pub fade_discriminator: bool,
+}
+
+impl ScheduleConfig {
+    /// The paper's schedule for `batch` images per step: its iterations times the batch.
+    pub fn paper(batch: u64) -> ScheduleConfig {
+        let kimg = |iterations: u64| (iterations * batch) as f64 / 1000.0;
+        ScheduleConfig {
+            stage1_kimg: kimg(PAPER_ITERATIONS.0),
+            stage2_kimg: kimg(PAPER_ITERATIONS.1),
+            // PGGAN's 600k images per fade-in.
+            fade_kimg: 600.0,
+            fade_discriminator: true,
+        }
+    }
 }
 
 impl Default for ScheduleConfig {
+    /// The paper's: 24,000 + 12,000 kimg (1M + 500k iterations of 24 images).
     fn default() -> Self {
-        // The paper: 1M "iterations" of stage 1, then 500k more (read as images, StyleGAN's
-        // kimg convention).
-        ScheduleConfig {
-            stage1_kimg: 1000.0,
-            stage2_kimg: 500.0,
-            fade_kimg: 100.0,
-        }
+        ScheduleConfig::paper(PAPER_BATCH)
     }
 }
 
@@ -129,7 +148,19 @@ mod tests {
             stage1_kimg: 10.0,
             stage2_kimg: 20.0,
             fade_kimg: 4.0,
+            fade_discriminator: true,
         }
+    }
+
+    #[test]
+    fn the_default_schedule_is_the_papers_iterations_at_its_batch() {
+        let s = ScheduleConfig::default();
+        // 1M and 500k iterations of 24 images, not 1M and 500k images.
+        assert_eq!((s.stage1_kimg, s.stage2_kimg), (24_000.0, 12_000.0));
+        assert_eq!(s.stage(999_999 * 24), Stage::One);
+        assert_eq!(s.stage(1_000_000 * 24), Stage::Two);
+        assert_eq!(s.stage(1_500_000 * 24), Stage::Done);
+        assert!(s.fade_discriminator);
     }
 
     #[test]
@@ -186,7 +217,7 @@ mod tests {
     #[test]
     fn configs_reject_unknown_keys_and_impossible_lengths() {
         let c: ScheduleConfig = toml::from_str("stage1_kimg = 5.0\nfade_kimg = 1.0").unwrap();
-        assert_eq!((c.stage1_kimg, c.stage2_kimg), (5.0, 500.0));
+        assert_eq!((c.stage1_kimg, c.stage2_kimg), (5.0, 12_000.0));
         assert!(
             toml::from_str::<ScheduleConfig>("stage3_kimg = 1.0")
                 .unwrap_err()

@@ -3,8 +3,12 @@
 //! detached (one Adam step of every active discriminator, with lazy R1 on reals every
 //! `r1_interval` steps). A step whose loss or updated weights are not finite changes nothing.
 //!
-//! Fakes are rendered with the real batch's poses and lighting, so both discriminators of a
-//! pair see the same distribution of cameras and environments. The discriminator phase reuses
+//! Fakes are lit with the real batch's lighting and seen from the cameras of
+//! [`crate::fake_poses`] (by default the reals' own when the dataset has poses, else a prior).
+//! Each discriminator sees reals and fakes through the same door: `D_S`'s real shading is
+//! brought to the volume resolution and back up as the generator's is, and during the fade-in
+//! the high-resolution `D_A` sees both with the ungrown resolutions faded out
+//! ([`crate::progressive`]). The discriminator phase reuses
 //! the generator phase's fakes instead of rendering a second batch: the generator is by far
 //! the dearer network, and the fakes differ from StyleGAN2's only by one generator update.
 
@@ -16,20 +20,21 @@ use burn::tensor::Tensor;
 use volux_data::batch::BatchTensors;
 use volux_model::discriminator::Discriminator;
 use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
-use volux_model::upsampler::bilinear_upsample;
 use volux_model::volume_rendering::Lighting;
 
 use crate::losses::{
-    LossWeights, discriminator_loss, generator_loss, lazy_r1, path_loss, shading_condition,
+    LossWeights, discriminator_loss, generator_loss, lazy_r1, path_loss, real_shading_condition,
+    shading_condition_lo,
 };
 use crate::networks::{Discriminators, all_finite};
+use crate::progressive::faded_input;
 use crate::schedule::ActiveTerms;
 
 /// What one step needs besides the networks.
 pub struct StepInputs<'a> {
     /// Latents `[batch, z_dim]` on the training device.
     pub z: Tensor<2>,
-    /// One `(yaw, pitch)` per element (the real batch's).
+    /// One `(yaw, pitch)` per element: the fakes' cameras (see [`crate::fake_poses`]).
     pub poses: &'a [(f64, f64)],
     /// The real batch's lighting (needed only when the relit image is).
     pub lighting: Option<&'a Lighting>,
@@ -41,6 +46,9 @@ pub struct StepInputs<'a> {
     pub weights: LossWeights,
     /// Upsampler fade-in weights (`None`: fully grown).
     pub fade: Option<Vec<f64>>,
+    /// Whether the high-resolution albedo discriminator's inputs fade in with the upsampler
+    /// (`[schedule] fade_discriminator`).
+    pub fade_discriminator: bool,
     /// Whether this step adds lazy R1 (and its interval).
     pub r1: Option<(f64, usize)>,
     pub lr_g: f64,
@@ -105,15 +113,29 @@ type Pair<'a> = (
     f64,
 );
 
-/// Every active discriminator with its fake and (if given) real inputs.
+/// Every active discriminator with its fake and (if given) real inputs, as it sees them:
+/// the high-resolution albedo faded in step with the upsampler (`fade`; `None` once grown),
+/// the reals' shading at the fakes' resolution.
 fn pairs<'a>(
     d: &'a Discriminators,
     fakes: &Fakes,
     reals: Option<&BatchTensors>,
     w: &LossWeights,
+    fade: Option<&[f64]>,
 ) -> Vec<Pair<'a>> {
-    let real_shading =
-        reals.map(|r| shading_condition(r.relit.clone(), r.diffuse.clone(), r.specular.clone()));
+    let real_shading = reals.map(|r| {
+        let factor = r.relit.dims()[2] / r.albedo_lo.dims()[2];
+        real_shading_condition(
+            r.relit.clone(),
+            r.diffuse.clone(),
+            r.specular.clone(),
+            factor,
+        )
+    });
+    let fake_albedo_hi = fakes
+        .albedo_hi
+        .as_ref()
+        .map(|a| faded_input(a.clone(), fade));
     let entries = [
         (
             ALBEDO_LO,
@@ -125,8 +147,8 @@ fn pairs<'a>(
         (
             ALBEDO_HI,
             &d.albedo_hi,
-            &fakes.albedo_hi,
-            reals.map(|r| r.albedo_hi.clone()),
+            &fake_albedo_hi,
+            reals.map(|r| faded_input(r.albedo_hi.clone(), fade)),
             w.albedo,
         ),
         (
@@ -197,12 +219,7 @@ fn generate(
     };
     let shading = match (a.shading, &out.relit, &out.diffuse_lo, &out.specular_lo) {
         (true, Some(relit), Some(d), Some(s)) => {
-            let f = g.upsampler.factor();
-            Some(shading_condition(
-                relit.clone(),
-                bilinear_upsample(d.clone(), f),
-                bilinear_upsample(s.clone(), f),
-            ))
+            Some(shading_condition_lo(relit.clone(), d.clone(), s.clone()))
         }
         _ => None,
     };
@@ -264,12 +281,13 @@ pub fn train_step(
 ) -> Result<StepOutcome, GeneratorError> {
     let mut outcome = StepOutcome::default();
     let w = inputs.weights;
+    let fade = inputs.fade.as_deref().filter(|_| inputs.fade_discriminator);
 
     // Generator phase: the discriminators are frozen (no weight gradients are computed).
     let (fakes, path) = generate(g, inputs)?;
     let frozen = Module::no_grad(d.clone());
     let mut g_loss: Option<Tensor<1>> = None;
-    for ([g_name, ..], disc, fake, _, weight) in pairs(&frozen, &fakes, None, &w) {
+    for ([g_name, ..], disc, fake, _, weight) in pairs(&frozen, &fakes, None, &w, fade) {
         let l = generator_loss(disc.forward(fake));
         outcome.losses.insert(g_name, scalar(&l));
         add(&mut g_loss, l.mul_scalar(weight));
@@ -297,7 +315,8 @@ pub fn train_step(
     // Discriminator phase on the same fakes, detached.
     let fakes = fakes.detach();
     let mut d_loss: Option<Tensor<1>> = None;
-    for ([_, d_name, r1_name], disc, fake, real, weight) in pairs(d, &fakes, Some(inputs.reals), &w)
+    for ([_, d_name, r1_name], disc, fake, real, weight) in
+        pairs(d, &fakes, Some(inputs.reals), &w, fade)
     {
         let real = real.expect("reals given");
         let (real_logits, r1) = match inputs.r1 {

@@ -12,7 +12,7 @@ use std::time::Instant;
 use burn::module::Module;
 use burn::optim::AdamConfig;
 use burn::tensor::Device;
-use volux_data::batch::{BatchLoader, lighting_tensors};
+use volux_data::batch::{BatchLoader, LightingTensorError};
 use volux_data::dataset::{DataError, Examples};
 use volux_envmap::LightMapSet;
 use volux_envmap::report::SplitMix64;
@@ -21,6 +21,7 @@ use volux_model::generator::{Generator, GeneratorError};
 
 use crate::checkpoint::{self, CHECKPOINT_FORMAT, CheckpointError, Networks, TrainState};
 use crate::config::TrainConfig;
+use crate::fake_poses::FakePoses;
 use crate::metrics::{Averages, MetricsLine, MetricsLog, peak_rss_mib};
 use crate::networks::{Discriminators, ema_beta, materialize, update_ema};
 use crate::sampling;
@@ -36,6 +37,10 @@ pub enum TrainError {
     Backend(#[from] BackendError),
     #[error(transparent)]
     Data(#[from] DataError),
+    #[error("the batch loader has stopped after an earlier error")]
+    LoaderStopped,
+    #[error("lighting a batch")]
+    Lighting(#[from] LightingTensorError),
     #[error("generator: {0}")]
     Model(#[from] GeneratorError),
     #[error(transparent)]
@@ -84,6 +89,8 @@ pub struct StepReport {
     pub stage: Stage,
     pub fade: Vec<f64>,
     pub losses: BTreeMap<&'static str, f64>,
+    /// The `(yaw, pitch)` each fake was rendered from.
+    pub fake_poses: Vec<(f64, f64)>,
     pub seconds: f64,
     pub skipped: Option<String>,
 }
@@ -122,7 +129,13 @@ pub struct Trainer {
     averages: Averages,
     last_checkpoint: Option<PathBuf>,
     poisoned: Vec<(u64, Phase)>,
+    /// Where the fakes' cameras come from (resolved for this dataset).
+    fake_poses: FakePoses,
 }
+
+/// The `purpose` of [`derived_seed`] for the fakes' camera draws (latents use `0..batch`, the
+/// ray jitter `u64::MAX`).
+const POSE_PURPOSE: u64 = u64::MAX - 1;
 
 /// Mixes the run's seed with a step number and a purpose.
 fn derived_seed(seed: u64, step: u64, purpose: u64) -> u64 {
@@ -208,6 +221,15 @@ impl Trainer {
         let bank = config.data.light_bank()?;
         let examples = Examples::open(&config.data, &config.data_hashed, &bank)?;
         let lights = Arc::new(bank.sets().to_vec());
+        let fake_poses = config.train.fake_poses.resolve(config.data.has_poses());
+        tracing::info!(
+            "fakes are rendered from {}",
+            match fake_poses {
+                FakePoses::Dataset => "the real batch's poses",
+                FakePoses::Swap => "the real batch's poses, swapped between examples",
+                _ => "the camera prior [train.pose_prior]",
+            }
+        );
         let metrics_path = options.out.join("metrics.jsonl");
         let metrics =
             MetricsLog::open(&metrics_path, state.step).map_err(|e| io_error(&metrics_path, e))?;
@@ -224,6 +246,7 @@ impl Trainer {
             averages: Averages::default(),
             last_checkpoint,
             poisoned: Vec::new(),
+            fake_poses,
         })
     }
 
@@ -266,22 +289,14 @@ impl Trainer {
             self.examples
                 .loader(self.state.step, batch_size, c.train.prefetch)
         });
-        let batch = loader
-            .next_batch()
-            .ok_or_else(|| DataError::Config("the batch loader stopped".into()))??;
+        let batch = loader.next_batch().ok_or(TrainError::LoaderStopped)??;
         let (step, images) = (self.state.step, self.state.images);
         let stage = c.schedule.stage(images);
         let active = c.schedule.active(images, &c.loss);
         let blocks = c.blocks();
         let fade = c.schedule.fade(images, blocks);
         let lighting = if active.needs_relit() {
-            let draws: Vec<&LightMapSet> =
-                batch.draws.iter().map(|d| &self.lights[d.map]).collect();
-            let yaws: Vec<f64> = batch.draws.iter().map(|d| d.yaw).collect();
-            Some(
-                lighting_tensors(&draws, &yaws, &self.device)
-                    .map_err(|e| DataError::Lighting(e.to_string()))?,
-            )
+            Some(batch.lighting(&self.lights, &self.device)?)
         } else {
             None
         };
@@ -290,17 +305,23 @@ impl Trainer {
             .map(|i| derived_seed(c.train.seed, step, i))
             .collect();
         let z = sampling::latents(&seeds, c.generator().mapping.z_dim, &self.device);
+        let poses = self.fake_poses.poses(
+            &batch.poses,
+            &c.train.pose_prior,
+            &mut SplitMix64::new(derived_seed(c.train.seed, step, POSE_PURPOSE)),
+        );
         self.device.seed(derived_seed(c.train.seed, step, u64::MAX));
         let interval = c.train.r1_interval;
         let inputs = StepInputs {
             z,
-            poses: &batch.poses,
+            poses: &poses,
             lighting: lighting.as_ref(),
             reals: &reals,
             background: c.data.albedo_background(),
             active,
             weights: c.loss,
             fade: (stage == Stage::One).then(|| fade.clone()),
+            fade_discriminator: c.schedule.fade_discriminator,
             r1: (interval > 0 && step.is_multiple_of(interval as u64))
                 .then_some((c.train.r1_gamma, interval)),
             lr_g: c.train.lr_g,
@@ -336,6 +357,7 @@ impl Trainer {
             stage,
             fade,
             losses: outcome.losses,
+            fake_poses: poses,
             seconds: started.elapsed().as_secs_f64(),
             skipped: outcome.skipped,
         })
