@@ -161,7 +161,7 @@ fn an_unknown_fake_pose_mode_and_a_bad_prior_are_named() {
         ),
     ] {
         std::fs::write(&path, text).unwrap();
-        let e = TrainConfig::load(&path).err().expect("refused").to_string();
+        let e = TrainConfig::load(&path).expect_err("refused").to_string();
         assert!(e.contains(key) && e.contains("bad.toml"), "{e}");
     }
 }
