@@ -1,5 +1,5 @@
 //! Folder datasets: a person's own photos with the intrinsic layers of each (paper appendix A;
-//! DESIGN.md, "Data"). Any decomposition tool can make the albedo, normals and masks; the
+//! docs/data.md). Any decomposition tool can make the albedo, normals and masks; the
 //! lighting half of the pseudo ground truth is computed from them by [`crate::relighting`].
 //!
 //! # Layout
@@ -17,7 +17,7 @@
 //!   needs an albedo and a normal map of the same size, and every albedo, normal map or mask
 //!   needs a photo. Hidden files (names starting with `.`) are skipped; other files and folders
 //!   in the layout's folders are ignored with a warning ([`FolderDataset::ignored`] lists them).
-//! - Normals are in camera space (DESIGN.md, "Conventions"): +x right, +y up, +z towards the
+//! - Normals are in camera space (docs/conventions.md): +x right, +y up, +z towards the
 //!   camera. A PNG normal map's background grey `(0.5, 0.5, 0.5)` is the zero normal.
 //! - A mask is optional per photo. Without one, the mask is 1 where the decoded normal is
 //!   longer than [`MASK_FROM_NORMAL_LENGTH`] and 0 elsewhere: the background of a normal map

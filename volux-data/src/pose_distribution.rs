@@ -1,4 +1,4 @@
-//! The distribution training poses are drawn from (DESIGN.md, "Conventions"): independent
+//! The distribution training poses are drawn from (docs/conventions.md, "World and camera"): independent
 //! Gaussians on yaw and pitch, pi-GAN's CelebA values by default, truncated at three standard
 //! deviations so that no draw looks at the back of the head.
 

@@ -2,7 +2,7 @@
 //! made from an image's albedo, normals and mask under an HDRI at a yaw rotation.
 //!
 //! Per pixel, with the normal taken from camera to world space by the pose and the view ray of
-//! the dataset camera (DESIGN.md): diffuse `D = L_1(n)`, specular
+//! the dataset camera (docs/conventions.md): diffuse `D = L_1(n)`, specular
 //! `S = sum_i w_i L_{n_i}(r)` with `r = d - 2 (d.n) n`, and the relit image
 //! `tonemap(A D + S)` (the curve of `volux_envmap::io::tonemap_pixel` at exposure 1, the same
 //! the generator uses) composited over the background with the mask. `D` and `S` are

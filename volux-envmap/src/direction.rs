@@ -1,4 +1,4 @@
-//! Directions and equirectangular texture coordinates (`DESIGN.md`, "Conventions").
+//! Directions and equirectangular texture coordinates (`docs/conventions.md`, "Directions and environment maps").
 //!
 //! `u` in `[0, 1)` runs with azimuth `phi = 2 pi u - pi` (so `u = 0.5` faces +z), `v` in
 //! `[0, 1]` with polar angle `theta = pi v` from +y (so `v = 0` is straight up).

@@ -10,7 +10,7 @@
 //! - [`LightMap`]: a preconvolved map with its bilinear look-up ([`lightmap`]).
 //! - [`report`]: error against run time of the fast method, measured against the reference.
 //!
-//! Conventions (`DESIGN.md`): +y up, texel centre `(u, v)` has polar angle `theta = pi v` from
+//! Conventions (`docs/conventions.md`): +y up, texel centre `(u, v)` has polar angle `theta = pi v` from
 //! +y and azimuth `phi = 2 pi u - pi`, direction `(sin theta sin phi, cos theta,
 //! sin theta cos phi)`; the centre column faces +z. For exponent `n`,
 //! `L_n(w) = (n + 1) / (2 pi) * integral H(u) max(0, w.u)^n du`, so a constant map gives the

@@ -1,4 +1,4 @@
-//! Camera rays and stratified samples along them (DESIGN.md, "Conventions"; EG3D's set-up).
+//! Camera rays and stratified samples along them (docs/conventions.md, "World and camera"; EG3D's set-up).
 //!
 //! A pinhole camera on a sphere of radius 2.7 looks at the origin with a vertical field of view
 //! of 18.84 degrees; rays run from `t = 2.25` to `t = 3.3`. Pose `(yaw, pitch)`: yaw 0, pitch 0

@@ -5,7 +5,7 @@
 //! image, `I_relit = 2 tonemap(A_hi D_up + S_up) - 1 + U(inputs)`, with the U-Net's last layer
 //! initialised to zero, so a fresh generator already relights physically and the U-Net learns
 //! what Phong lacks (the paper's "higher order light transport"). HDR shading goes in through
-//! `log1p` (a 1e5 sun stays finite and well scaled, DESIGN.md), albedo as `2 A - 1`. The tone
+//! `log1p` (a 1e5 sun stays finite and well scaled, docs/conventions.md), albedo as `2 A - 1`. The tone
 //! map is [`tonemap_srgb`], the same curve as `volux_envmap::io::tonemap` at exposure 1, which
 //! the data pipeline uses for its pseudo-ground-truth relit images.
 

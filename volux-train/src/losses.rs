@@ -1,4 +1,4 @@
-//! The adversarial losses of the paper (section 3.4; DESIGN.md, "Discriminators and losses"):
+//! The adversarial losses of the paper (section 3.4; docs/conventions.md, "Losses"):
 //! StyleGAN2's non-saturating logistic loss for every discriminator, lazily regularised R1 on
 //! reals, the path loss tying the low- and high-resolution albedo, and the weights of the four
 //! adversarial terms.
