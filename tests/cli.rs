@@ -392,6 +392,11 @@ fn train_resume_and_sample_end_to_end() {
         text(&bad)
     );
 
+    // A new run into the folder of this one is refused (nothing of it is lost).
+    let o = volux(&["train", "--config", config, "--out", run_s, "--steps", "1"]);
+    let t = text(&o);
+    assert!(!o.status.success());
+    assert!(t.contains("--resume") && t.contains("--force"), "{t}");
     // A resume with a changed model is refused, naming both.
     std::fs::write(
         dir.path().join("tiny.toml"),

@@ -24,8 +24,12 @@ pub struct TrainArgs {
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Continue from the newest checkpoint in the run folder.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "force")]
     pub resume: bool,
+    /// Start afresh in a run folder that already holds a run, deleting its checkpoints,
+    /// metrics.jsonl and grids/ (without it such a folder is refused).
+    #[arg(long)]
+    pub force: bool,
     /// Stop after this many steps (a checkpoint is written first).
     #[arg(long)]
     pub steps: Option<u64>,
@@ -68,6 +72,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             backend: args.backend,
             out: out.clone(),
             resume: args.resume,
+            force: args.force,
             max_steps: args.steps,
         },
     )

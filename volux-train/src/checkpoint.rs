@@ -90,6 +90,12 @@ fn step_of(name: &str) -> Option<u64> {
     name.strip_prefix(PREFIX)?.parse().ok()
 }
 
+/// Whether `name` is a checkpoint folder's name (`checkpoint-<step>`, or its partial
+/// `checkpoint-<step>.partial` without the leading dot).
+pub fn is_checkpoint_name(name: &str) -> bool {
+    step_of(name.trim_end_matches(".partial")).is_some()
+}
+
 /// Complete checkpoints under `root`, oldest first.
 pub fn list(root: &Path) -> Vec<(u64, PathBuf)> {
     let Ok(entries) = fs::read_dir(root) else {

@@ -12,6 +12,7 @@
 //! - [`training_loop`]: the [`training_loop::Trainer`] (data, schedule, EMA, metrics, grids,
 //!   checkpoints, resume).
 //! - [`checkpoint`]: atomic checkpoint folders, keep-last-K, resume.
+//! - [`run_folder`]: what in a run folder belongs to a run; refusing to mix two runs.
 //! - [`metrics`]: the JSON-lines metrics log.
 //! - [`sampling`]: latents from seeds, every layer of a sample, the sample grid;
 //!   [`animation`]: looping GIFs.
@@ -24,6 +25,7 @@ pub mod losses;
 pub mod metrics;
 pub mod networks;
 pub mod progressive;
+pub mod run_folder;
 pub mod sampling;
 pub mod schedule;
 pub mod step;

@@ -24,6 +24,7 @@ use crate::config::TrainConfig;
 use crate::fake_poses::FakePoses;
 use crate::metrics::{Averages, MetricsLine, MetricsLog, peak_rss_mib};
 use crate::networks::{Discriminators, ema_beta, materialize, update_ema};
+use crate::run_folder;
 use crate::sampling;
 use crate::schedule::Stage;
 use crate::step::{Phase, StepInputs, train_step};
@@ -37,6 +38,12 @@ pub enum TrainError {
     Backend(#[from] BackendError),
     #[error(transparent)]
     Data(#[from] DataError),
+    #[error(
+        "{} already holds a run ({}): continue it with --resume, start afresh with --force (deletes that run), or choose another --out",
+        out.display(),
+        found.iter().map(|p| p.file_name().map_or(String::new(), |n| n.to_string_lossy().into_owned())).collect::<Vec<_>>().join(", ")
+    )]
+    RunExists { out: PathBuf, found: Vec<PathBuf> },
     #[error("the batch loader has stopped after an earlier error")]
     LoaderStopped,
     #[error("lighting a batch")]
@@ -76,6 +83,9 @@ pub struct TrainOptions {
     pub out: PathBuf,
     /// Continue from the newest checkpoint in `out` (an error if there is none).
     pub resume: bool,
+    /// Start afresh in an `out` that holds a run, deleting that run's checkpoints, metrics
+    /// and grids first (without it, such a folder is refused unless resuming).
+    pub force: bool,
     /// Stop after this many steps of this invocation (a checkpoint is written first).
     pub max_steps: Option<u64>,
 }
@@ -148,6 +158,16 @@ impl Trainer {
     /// resuming), the data and the logs.
     pub fn new(config: TrainConfig, options: TrainOptions) -> Result<Trainer, TrainError> {
         let device = options.backend.device()?.autodiff();
+        if !options.resume {
+            let existing = run_folder::run_files(&options.out);
+            if !existing.is_empty() && !options.force {
+                return Err(TrainError::RunExists {
+                    out: options.out.clone(),
+                    found: existing,
+                });
+            }
+            run_folder::clear(&options.out).map_err(|(path, e)| io_error(&path, e))?;
+        }
         std::fs::create_dir_all(&options.out).map_err(|e| io_error(&options.out, e))?;
         let t = &config.train;
         // The backend's random generator is process-wide: one run per process is reproducible.
@@ -230,7 +250,7 @@ impl Trainer {
                 _ => "the camera prior [train.pose_prior]",
             }
         );
-        let metrics_path = options.out.join("metrics.jsonl");
+        let metrics_path = options.out.join(run_folder::METRICS);
         let metrics =
             MetricsLog::open(&metrics_path, state.step).map_err(|e| io_error(&metrics_path, e))?;
         Ok(Trainer {
@@ -393,7 +413,7 @@ impl Trainer {
             c.data.albedo_background(),
         )?;
         let sheet = sampling::grid(&layers);
-        let dir = self.options.out.join("grids");
+        let dir = self.options.out.join(run_folder::GRIDS);
         std::fs::create_dir_all(&dir).map_err(|e| io_error(&dir, e))?;
         let path = dir.join(format!("grid-{:08}.png", self.state.images));
         volux_envmap::io::save_png(&path, sheet.width(), sheet.height(), &sheet.to_u8())

@@ -91,6 +91,7 @@ fn trainer(dir: &Path, text: &str) -> Trainer {
             out: dir.join("run"),
             resume: false,
             max_steps: None,
+            force: false,
         },
     )
     .unwrap()

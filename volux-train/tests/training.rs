@@ -67,6 +67,7 @@ fn options(out: &Path, resume: bool, max_steps: Option<u64>) -> TrainOptions {
         out: out.to_path_buf(),
         resume,
         max_steps,
+        force: false,
     }
 }
 
@@ -228,4 +229,54 @@ fn every_shipped_config_loads() {
     }
     names.sort();
     assert_eq!(names, ["celeba128", "ffhq256", "quickstart", "synthetic64"]);
+}
+
+#[test]
+fn a_folder_holding_a_run_is_refused_unless_resumed_or_forced() {
+    let _one = ONE_RUN_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let c = config(dir.path(), TINY);
+    let out = dir.path().join("run");
+    let mut t = Trainer::new(c.clone(), options(&out, false, Some(1))).unwrap();
+    let _ = losses(&mut t);
+    drop(t);
+    let metrics = std::fs::read_to_string(out.join("metrics.jsonl")).unwrap();
+    let kept = checkpoint::list(&out);
+    assert_eq!(kept.len(), 1);
+
+    // A second run into the same folder would mix with (and delete) the first: refused, and
+    // nothing of the first run is touched.
+    let e = Trainer::new(c.clone(), options(&out, false, Some(1)))
+        .err()
+        .expect("refused");
+    assert!(matches!(e, TrainError::RunExists { .. }), "{e}");
+    let message = e.to_string();
+    assert!(
+        message.contains("--resume")
+            && message.contains("--force")
+            && message.contains("metrics.jsonl"),
+        "{message}"
+    );
+    assert_eq!(
+        std::fs::read_to_string(out.join("metrics.jsonl")).unwrap(),
+        metrics
+    );
+    assert_eq!(checkpoint::list(&out), kept);
+
+    // Forced: the old run is gone and the new one starts at step 0.
+    std::fs::write(out.join("notes.txt"), "mine").unwrap();
+    let forced = TrainOptions {
+        force: true,
+        ..options(&out, false, Some(1))
+    };
+    let t = Trainer::new(c, forced).unwrap();
+    assert_eq!(t.state().step, 0);
+    assert!(checkpoint::list(&out).is_empty());
+    assert!(!out.join("grids").exists());
+    let fresh = std::fs::read_to_string(out.join("metrics.jsonl")).unwrap_or_default();
+    assert!(fresh.is_empty(), "{fresh}");
+    assert!(
+        out.join("notes.txt").is_file(),
+        "files not of a run are kept"
+    );
 }
