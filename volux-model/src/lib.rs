@@ -1,7 +1,7 @@
 //! VoLux-GAN's networks as Burn modules, one module per concept of the paper.
 //!
 //! - Generator (section 3, appendix B): [`mapping`] network, [`positional_encoding`],
-//!   [`modulated`] layers, the [`neiif`] (density, forward-mode normals, albedo, specular
+//!   [`modulated`] layers, the [`neiif`] (its activation a [`fused_activation`]) (density, forward-mode normals, albedo, specular
 //!   weights, features), volume rendering ([`ray_sampling`] -> [`volume_rendering`] ->
 //!   [`ray_marching`], with the [`light_lookup`] for `D` and `S`), the [`upsampler`], the
 //!   [`relighting`] U-Net, all tied together in [`generator`]; [`presets`] sizes the
@@ -16,6 +16,7 @@ pub mod backend;
 pub mod blur;
 pub mod discriminator;
 pub mod equalized;
+pub mod fused_activation;
 pub mod generator;
 pub mod light_lookup;
 pub mod mapping;

@@ -21,6 +21,7 @@ use burn::module::Module;
 use burn::tensor::{Device, Tensor, activation};
 
 use crate::equalized::{EqualizedLinear, EqualizedLinearConfig};
+use crate::fused_activation;
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
 use crate::positional_encoding::{PositionalEncoding, PositionalEncodingConfig};
 
@@ -218,16 +219,6 @@ fn per_point(layer: &EqualizedLinear, x: Tensor<3>) -> Tensor<3> {
     y.reshape([b, p, o])
 }
 
-/// The same without the bias (how a tangent goes through the layer).
-fn per_point_linear(layer: &EqualizedLinear, x: Tensor<3>) -> Tensor<3> {
-    let [b, p, c] = x.dims();
-    let y = x
-        .reshape([b * p, c])
-        .matmul(layer.effective_weight().transpose());
-    let o = y.dims()[1];
-    y.reshape([b, p, o])
-}
-
 impl Neiif {
     /// Width of the feature `f`.
     pub fn feature_dim(&self) -> usize {
@@ -241,6 +232,22 @@ impl Neiif {
 
     /// Queries `points: [batch, points, 3]` of the fields of `w: [batch, w_dim]`.
     pub fn forward(&self, points: Tensor<3>, w: Tensor<2>, wants: FieldWants) -> FieldOutput {
+        self.forward_with(points, w, wants, fused_activation::activate)
+    }
+
+    /// [`Self::forward`] with the activation `activate(y, bias, tangents)` of
+    /// [`fused_activation`] (the fused kernel or its plain reference).
+    ///
+    /// Through layers 1-4 the values and the three tangents travel stacked along the points,
+    /// `[batch, 4 p, width]` (rows `0..p` values, then tangent `j` of point `i` at row
+    /// `(1 + j) p + i`), so that each layer is one batched matmul and one activation.
+    pub fn forward_with(
+        &self,
+        points: Tensor<3>,
+        w: Tensor<2>,
+        wants: FieldWants,
+        activate: fn(Tensor<3>, Tensor<1>, usize) -> Tensor<3>,
+    ) -> FieldOutput {
         let [b, p, _] = points.dims();
         let (sharpness, radius) = self.sphere_prior;
         // The prior's logit `s (r - |x|)` and its gradient `-s x / |x|`, `[b, p, 1]` and
@@ -253,16 +260,20 @@ impl Neiif {
         });
         let flat = points.reshape([b * p, 3]);
         let d = self.encoding.output_dim();
-        let (encoded, mut tangents) = if wants.normals {
+        // Tangents stacked under the values: 3 of them while the density still needs them.
+        let mut tangents = if wants.normals { 3 } else { 0 };
+        let mut h = if wants.normals {
             let (encoded, deriv) = self.encoding.forward_with_derivative(flat);
             let masks = self.encoding.coordinate_masks(&encoded.device());
             // [b, 3, p, d] -> [b, 3p, d]: tangent j of point i at row j * p + i.
             let t = deriv.reshape([b, 1, p, d]) * masks.reshape([1, 3, 1, d]);
-            (encoded, Some(t.reshape([b, 3 * p, d])))
+            Tensor::cat(
+                vec![encoded.reshape([b, p, d]), t.reshape([b, 3 * p, d])],
+                1,
+            )
         } else {
-            (self.encoding.forward(flat), None)
+            self.encoding.forward(flat).reshape([b, p, d])
         };
-        let mut h = encoded.reshape([b, p, d]);
         let mut out = FieldOutput {
             sigma: Tensor::zeros([b, p], &h.device()),
             grad_sigma: None,
@@ -273,29 +284,27 @@ impl Neiif {
         };
         for (i, layer) in self.layers.iter().enumerate() {
             let m = layer.modulation(w.clone());
-            let z = match tangents.take() {
-                Some(t) => {
-                    // Tangents go through the same weight, without the bias.
-                    let o = layer.d_output();
-                    let z = layer.add_bias(layer.linear(h, &m));
-                    let (value, dz) = smooth_lrelu_parts(z, true);
-                    let dz = dz.expect("asked").reshape([b, 1, p, o]);
-                    let t = layer.linear(t, &m).reshape([b, 3, p, o]) * dz;
-                    tangents = Some(t.reshape([b, 3 * p, o]));
-                    value
-                }
-                None => smooth_lrelu(layer.add_bias(layer.linear(h, &m))),
-            };
-            h = z;
+            // Tangents go through the same weight, without the bias.
+            h = activate(layer.linear(h, &m), layer.bias.val(), tangents);
             if i + 1 == self.density_layer {
-                let mut raw = per_point(&self.density_head, h.clone()); // [b, p, 1]
-                if let Some((logit, _)) = &prior {
-                    raw = raw + logit.clone();
+                // The head's weight on values and tangents at once, its bias on values only.
+                let o = layer.d_output();
+                let y = h
+                    .clone()
+                    .reshape([b * (1 + tangents) * p, o])
+                    .matmul(self.density_head.effective_weight().transpose());
+                let y = y.reshape([b, (1 + tangents) * p]);
+                let mut raw = y.clone().narrow(1, 0, p);
+                if let Some(bias) = self.density_head.effective_bias() {
+                    raw = raw + bias.reshape([1, 1]);
                 }
-                out.sigma = activation::softplus(raw.clone(), 1.0).reshape([b, p]);
-                if let Some(t) = tangents.take() {
+                if let Some((logit, _)) = &prior {
+                    raw = raw + logit.clone().reshape([b, p]);
+                }
+                out.sigma = activation::softplus(raw.clone(), 1.0);
+                if tangents > 0 {
                     // d sigma / dx_j = sigmoid(raw) * (head weight . tangent_j + prior_j).
-                    let mut g = per_point_linear(&self.density_head, t).reshape([b, 3, p]);
+                    let mut g = y.narrow(1, p, 3 * p).reshape([b, 3, p]);
                     if let Some((_, grad)) = &prior {
                         g = g + grad.clone().swap_dims(1, 2);
                     }
@@ -303,6 +312,9 @@ impl Neiif {
                     let g = g.swap_dims(1, 2); // [b, p, 3]
                     out.normals = Some(normals_from_gradient(g.clone()));
                     out.grad_sigma = Some(g);
+                    // Layers 5 and 6 carry values only.
+                    h = h.narrow(1, 0, p);
+                    tangents = 0;
                 }
                 if !wants.appearance {
                     return out;
@@ -473,6 +485,59 @@ mod tests {
             },
         );
         assert!(no_normals.normals.is_none() && no_normals.features.is_some());
+    }
+
+    #[test]
+    fn fused_activation_gives_the_reference_outputs_and_gradients() {
+        let device = Device::flex().autodiff();
+        let field = small_with_prior(4, 10.0, &device).map(&mut Reseed::new(31, DType::F32));
+        let w = Tensor::<2>::random([2, 16], Distribution::Normal(0.0, 1.0), &device);
+        let pts = Tensor::cat(vec![points(300, 4, &device), points(300, 5, &device)], 0);
+        let run = |activate: fn(Tensor<3>, Tensor<1>, usize) -> Tensor<3>| {
+            let out = field.forward_with(pts.clone(), w.clone(), FieldWants::ALL, activate);
+            let parts = [
+                out.grad_sigma.unwrap(),
+                out.normals.unwrap(),
+                out.albedo.unwrap(),
+                out.specular_weights.unwrap(),
+                out.features.unwrap(),
+            ];
+            let mut loss = out.sigma.clone().sum();
+            let mut values = to_f32_vec(out.sigma);
+            for (k, p) in parts.into_iter().enumerate() {
+                values.extend(to_f32_vec(p.clone()));
+                loss = loss + p.sum().mul_scalar(k as f64 + 1.0);
+            }
+            let grads = loss.backward();
+            let mut g = Vec::new();
+            for layer in &field.layers {
+                g.extend(to_f32_vec(layer.weight.val().grad(&grads).unwrap()));
+                g.extend(to_f32_vec(layer.bias.val().grad(&grads).unwrap()));
+                g.extend(to_f32_vec(layer.affine.weight.val().grad(&grads).unwrap()));
+            }
+            g.extend(to_f32_vec(
+                field.head_hidden.weight.val().grad(&grads).unwrap(),
+            ));
+            (values, g)
+        };
+        let (fused, reference) = (
+            run(crate::fused_activation::activate),
+            run(crate::fused_activation::activate_reference),
+        );
+        for (what, got, want, tol) in [
+            ("outputs", &fused.0, &reference.0, 1e-5),
+            ("parameter gradients", &fused.1, &reference.1, 1e-4),
+        ] {
+            let scale = want.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let worst = got
+                .iter()
+                .zip(want.iter())
+                .fold(0.0f32, |m, (g, w)| m.max((g - w).abs()));
+            assert!(
+                worst <= tol * scale,
+                "{what}: worst difference {worst}, scale {scale}"
+            );
+        }
     }
 
     #[test]

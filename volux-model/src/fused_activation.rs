@@ -1,0 +1,475 @@
+//! The NeIIF's activation with its forward-mode tangents as one operation with a hand-written
+//! backward pass.
+//!
+//! A modulated layer's output holds values and tangents stacked along the points,
+//! `y: [batch, (1 + k) p, o]` (rows `0..p` the pre-activations without bias, rows
+//! `(1 + j) p..(2 + j) p` tangent `j` of each point). The operation gives
+//! `[a(z); t_1 a'(z); ...; t_k a'(z)]` with `z = y_value + bias` and `a` the smooth activation
+//! [`crate::neiif::smooth_lrelu`]. Written with tensor ops that is about 20 elementwise passes
+//! over `[batch, p, o]` tensors, each recorded by autodiff and each with its own backward
+//! passes; here it is one pass forward and one backward, which is what makes the NeIIF fast on
+//! the CPU.
+//!
+//! On the `flex` backend (with or without autodiff) the fused kernels run; on any other backend
+//! [`activate_reference`], the same function in plain tensor ops, does. Both are tested against
+//! each other and against f64 finite differences.
+//!
+//! Backward, with `s = sigmoid(z)`, `a' = g (0.2 + 0.8 s)` and `a'' = 0.8 g s (1 - s)`:
+//! `dL/dy_value = G_value a'(z) + a''(z) sum_j G_j t_j`, `dL/dt_j = G_j a'(z)`,
+//! `dL/dbias = sum over batch and points of dL/dy_value`.
+
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::{BalancedCheckpointing, NoCheckpointing};
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::flex::FlexTensor;
+use burn::backend::{
+    Autodiff, DispatchDevice, Flex, GradientCheckpointingStrategy, TensorMetadata,
+};
+use burn::tensor::{DType, Device, Tensor, TensorData};
+use rayon::prelude::*;
+
+use crate::neiif::{SMOOTH_GAIN, smooth_lrelu, smooth_lrelu_parts};
+
+/// Rows of `o` channels per parallel task.
+const ROWS_PER_TASK: usize = 256;
+
+/// The activation of stacked values and `tangents` tangents (see the module documentation):
+/// `y: [batch, (1 + tangents) p, o]`, `bias: [o]`, output of `y`'s shape.
+pub fn activate(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3> {
+    let [_, rows, o] = y.dims();
+    assert_eq!(
+        rows % (1 + tangents),
+        0,
+        "rows must stack 1 + {tangents} blocks"
+    );
+    assert_eq!(bias.dims(), [o], "one bias per channel");
+    if y.dtype() != DType::F32 || bias.dtype() != DType::F32 {
+        return activate_reference(y, bias, tangents);
+    }
+    match route(&y.device()) {
+        Route::Flex => {
+            let (Ok(y), Ok(bias)) = (
+                y.try_into_primitive::<Flex>(),
+                bias.try_into_primitive::<Flex>(),
+            ) else {
+                unreachable!("a flex device holds flex tensors")
+            };
+            Tensor::from_primitive::<Flex>(forward_flex(&y, &bias, tangents))
+        }
+        Route::Autodiff(GradientCheckpointingStrategy::Disabled) => {
+            activate_autodiff_plain(y, bias, tangents)
+        }
+        Route::Autodiff(GradientCheckpointingStrategy::Balanced) => {
+            activate_autodiff_balanced(y, bias, tangents)
+        }
+        Route::Other => activate_reference(y, bias, tangents),
+    }
+}
+
+/// The same in plain tensor ops: the reference, and what backends other than flex run.
+pub fn activate_reference(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3> {
+    let [b, rows, o] = y.dims();
+    let p = rows / (1 + tangents);
+    let z = y.clone().narrow(1, 0, p) + bias.reshape([1, 1, o]);
+    if tangents == 0 {
+        return smooth_lrelu(z);
+    }
+    let (value, derivative) = smooth_lrelu_parts(z, true);
+    let derivative = derivative.expect("asked").reshape([b, 1, p, o]);
+    let t = y.narrow(1, p, tangents * p).reshape([b, tangents, p, o]) * derivative;
+    Tensor::cat(vec![value, t.reshape([b, tangents * p, o])], 1)
+}
+
+enum Route {
+    Flex,
+    Autodiff(GradientCheckpointingStrategy),
+    Other,
+}
+
+fn route(device: &Device) -> Route {
+    #[allow(unreachable_patterns)] // with only flex compiled in, `_` covers nothing
+    match device.as_dispatch() {
+        DispatchDevice::Flex(_) => Route::Flex,
+        DispatchDevice::Autodiff(inner) => match &**inner {
+            DispatchDevice::Flex(_) => Route::Autodiff(inner.gradient_checkpointing_strategy()),
+            _ => Route::Other,
+        },
+        _ => Route::Other,
+    }
+}
+
+/// The autodiff route for one checkpointing strategy (Burn's conversion to a concrete
+/// autodiff primitive is implemented per strategy, not generically, hence a macro).
+macro_rules! activate_autodiff {
+    ($name:ident, $strategy:ty) => {
+        fn $name(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3> {
+            type B = Autodiff<Flex, $strategy>;
+            let (Ok(y), Ok(bias)) = (y.try_into_primitive::<B>(), bias.try_into_primitive::<B>())
+            else {
+                unreachable!("an autodiff flex device holds autodiff flex tensors")
+            };
+            let (y, y_node) = y.into_parts();
+            let (bias, bias_node) = bias.into_parts();
+            let out = forward_flex(&y, &bias, tangents);
+            let out = match ActivateBackward
+                .prepare::<$strategy>([y_node, bias_node])
+                .compute_bound()
+                .stateful()
+            {
+                OpsKind::Tracked(prep) => prep.finish(ActivateState { y, bias, tangents }, out),
+                OpsKind::UnTracked(prep) => prep.finish(out),
+            };
+            Tensor::from_primitive::<B>(out)
+        }
+    };
+}
+
+activate_autodiff!(activate_autodiff_plain, NoCheckpointing);
+activate_autodiff!(activate_autodiff_balanced, BalancedCheckpointing);
+
+#[derive(Debug)]
+struct ActivateBackward;
+
+#[derive(Clone, Debug)]
+struct ActivateState {
+    y: FlexTensor,
+    bias: FlexTensor,
+    tangents: usize,
+}
+
+impl Backward<Flex, 2> for ActivateBackward {
+    type State = ActivateState;
+
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let [y_node, bias_node] = ops.parents;
+        let grad = grads.consume::<Flex>(&ops.node);
+        if y_node.is_none() && bias_node.is_none() {
+            return;
+        }
+        let state = ops.state;
+        let (grad_y, grad_bias) = backward_flex(&state.y, &state.bias, &grad, state.tangents);
+        if let Some(node) = bias_node {
+            grads.register::<Flex>(node.id, grad_bias);
+        }
+        if let Some(node) = y_node {
+            grads.register::<Flex>(node.id, grad_y);
+        }
+    }
+}
+
+/// A contiguous f32 view of a flex tensor (copied only if it is strided).
+fn contiguous(t: &FlexTensor) -> std::borrow::Cow<'_, [f32]> {
+    match t.as_slice::<f32>() {
+        Some(s) => std::borrow::Cow::Borrowed(s),
+        None => std::borrow::Cow::Owned(t.to_contiguous().as_slice::<f32>().unwrap().to_vec()),
+    }
+}
+
+fn flex_tensor(values: Vec<f32>, shape: Vec<usize>) -> FlexTensor {
+    FlexTensor::from_data(TensorData::new(values, shape))
+}
+
+/// Splits `out: [batch, (1 + k) p, o]` into tasks of up to [`ROWS_PER_TASK`] points: each task
+/// is the flat offset of its value rows and the mutable value and tangent rows of those points.
+fn tasks(out: &mut [f32], groups: usize, p: usize, o: usize) -> Vec<(usize, Vec<&mut [f32]>)> {
+    let mut tasks = Vec::new();
+    for (bi, batch) in out.chunks_mut(groups * p * o).enumerate() {
+        let mut blocks: Vec<_> = batch
+            .chunks_mut(p * o)
+            .map(|block| block.chunks_mut(ROWS_PER_TASK * o))
+            .collect();
+        for chunk in 0..p.div_ceil(ROWS_PER_TASK) {
+            let parts: Vec<&mut [f32]> = blocks
+                .iter_mut()
+                .map(|b| b.next().expect("blocks have equal length"))
+                .collect();
+            tasks.push(((bi * groups * p + chunk * ROWS_PER_TASK) * o, parts));
+        }
+    }
+    tasks
+}
+
+/// `e = exp(-|z|)`, then `(a(z), a'(z), a''(z))`, stable for any `z`.
+#[inline]
+fn parts(z: f32) -> (f32, f32, f32) {
+    let g = SMOOTH_GAIN as f32;
+    let e = (-z.abs()).exp();
+    // `ln(1 + e)` rather than `ln_1p(e)`: as exact here (`e` is added to `max(z, 0)`, and
+    // `1 + e` rounds by at most half an ulp of 1) and much faster (glibc's `log1pf` took 12%
+    // of a generator benchmark's profile, `logf` in its place 2%).
+    let one_plus = 1.0 + e;
+    let softplus = z.max(0.0) + one_plus.ln();
+    let r = 1.0 / one_plus;
+    let sigmoid = if z >= 0.0 { r } else { e * r };
+    let value = g * (0.2 * z + 0.8 * softplus);
+    let first = g * (0.2 + 0.8 * sigmoid);
+    // sigmoid (1 - sigmoid) = e / (1 + e)^2 on both sides of 0.
+    let second = g * 0.8 * e * r * r;
+    (value, first, second)
+}
+
+fn forward_flex(y: &FlexTensor, bias: &FlexTensor, tangents: usize) -> FlexTensor {
+    let shape = y.shape().to_vec();
+    let (groups, o) = (1 + tangents, shape[2]);
+    let p = shape[1] / groups;
+    let (y, bias) = (contiguous(y), contiguous(bias));
+    let mut out = vec![0.0f32; y.len()];
+    tasks(&mut out, groups, p, o)
+        .into_par_iter()
+        .for_each(|(offset, mut parts_out)| {
+            let (value_out, tangents_out) = parts_out.split_first_mut().expect("a value block");
+            let mut first = vec![0.0f32; o];
+            for (r, value_row) in value_out.chunks_exact_mut(o).enumerate() {
+                let at = offset + r * o;
+                let y_row = &y[at..at + o];
+                for c in 0..o {
+                    let (value, d, _) = parts(y_row[c] + bias[c]);
+                    value_row[c] = value;
+                    first[c] = d;
+                }
+                // Row by row, so that this loop vectorises.
+                for (j, t_out) in tangents_out.iter_mut().enumerate() {
+                    let t_at = at + (1 + j) * p * o;
+                    let rows = t_out[r * o..(r + 1) * o].iter_mut().zip(&y[t_at..t_at + o]);
+                    for ((t_out, t), d) in rows.zip(&first) {
+                        *t_out = t * d;
+                    }
+                }
+            }
+        });
+    flex_tensor(out, shape)
+}
+
+/// Gradients with respect to `y` and `bias` for the output gradient `grad`.
+fn backward_flex(
+    y: &FlexTensor,
+    bias: &FlexTensor,
+    grad: &FlexTensor,
+    tangents: usize,
+) -> (FlexTensor, FlexTensor) {
+    let shape = y.shape().to_vec();
+    let (groups, o) = (1 + tangents, shape[2]);
+    let p = shape[1] / groups;
+    let (y, bias, grad) = (contiguous(y), contiguous(bias), contiguous(grad));
+    let mut grad_y = vec![0.0f32; y.len()];
+    let partial_bias: Vec<Vec<f32>> = tasks(&mut grad_y, groups, p, o)
+        .into_par_iter()
+        .map(|(offset, mut parts_out)| {
+            let mut bias_sum = vec![0.0f32; o];
+            let (mut first, mut second) = (vec![0.0f32; o], vec![0.0f32; o]);
+            let (value_out, tangents_out) = parts_out.split_first_mut().expect("a value block");
+            for (r, value_row) in value_out.chunks_exact_mut(o).enumerate() {
+                let at = offset + r * o;
+                let (y_row, g_row) = (&y[at..at + o], &grad[at..at + o]);
+                for c in 0..o {
+                    let (_, d, d2) = parts(y_row[c] + bias[c]);
+                    first[c] = d;
+                    second[c] = d2;
+                    value_row[c] = g_row[c] * d;
+                }
+                for (j, t_out) in tangents_out.iter_mut().enumerate() {
+                    let t_at = at + (1 + j) * p * o;
+                    let (t_row, g_row) = (&y[t_at..t_at + o], &grad[t_at..t_at + o]);
+                    let t_out = &mut t_out[r * o..(r + 1) * o];
+                    for c in 0..o {
+                        value_row[c] += g_row[c] * t_row[c] * second[c];
+                        t_out[c] = g_row[c] * first[c];
+                    }
+                }
+                for (total, v) in bias_sum.iter_mut().zip(value_row.iter()) {
+                    *total += v;
+                }
+            }
+            bias_sum
+        })
+        .collect();
+    let mut grad_bias = vec![0.0f32; o];
+    for partial in partial_bias {
+        for (total, v) in grad_bias.iter_mut().zip(partial) {
+            *total += v;
+        }
+    }
+    (flex_tensor(grad_y, shape), flex_tensor(grad_bias, vec![o]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::to_f32_vec;
+    use crate::test_support::normals;
+    use volux_envmap::report::SplitMix64;
+
+    fn tensor<const D: usize>(values: &[f64], shape: [usize; D], device: &Device) -> Tensor<D> {
+        let v: Vec<f32> = values.iter().map(|x| *x as f32).collect();
+        Tensor::from_data(TensorData::new(v, shape), device)
+    }
+
+    /// `sum(activate(y, bias) * r)` and its gradients with respect to `y` and `bias`.
+    fn loss_and_grads(
+        f: fn(Tensor<3>, Tensor<1>, usize) -> Tensor<3>,
+        y: &[f64],
+        bias: &[f64],
+        r: &[f64],
+        shape: [usize; 3],
+        tangents: usize,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let device = Device::flex().autodiff();
+        let yt = tensor(y, shape, &device).require_grad();
+        let bt = tensor(bias, [shape[2]], &device).require_grad();
+        let out = f(yt.clone(), bt.clone(), tangents);
+        let grads = (out.clone() * tensor(r, shape, &device)).sum().backward();
+        (
+            to_f32_vec(out),
+            to_f32_vec(yt.grad(&grads).unwrap()),
+            to_f32_vec(bt.grad(&grads).unwrap()),
+        )
+    }
+
+    fn assert_close(got: &[f32], want: &[f32], tol: f32, what: &str) {
+        assert_eq!(got.len(), want.len(), "{what}: lengths");
+        for (i, (g, w)) in got.iter().zip(want).enumerate() {
+            assert!(
+                (g - w).abs() <= tol * (1.0 + w.abs()),
+                "{what}[{i}]: {g} vs {w}"
+            );
+        }
+    }
+
+    #[test]
+    fn fused_matches_the_reference_in_values_and_gradients() {
+        let mut rng = SplitMix64::new(5);
+        // 300 points: more than one task per batch element, the last one short.
+        for (tangents, p) in [(3, 300), (0, 300), (3, 7), (1, 1)] {
+            let shape = [2, (1 + tangents) * p, 5];
+            let n = shape.iter().product();
+            let y: Vec<f64> = normals(&mut rng, n).iter().map(|v| 3.0 * v).collect();
+            let bias = normals(&mut rng, 5);
+            let r = normals(&mut rng, n);
+            let fused = loss_and_grads(activate, &y, &bias, &r, shape, tangents);
+            let reference = loss_and_grads(activate_reference, &y, &bias, &r, shape, tangents);
+            let what = format!("{tangents} tangents, {p} points");
+            assert_close(&fused.0, &reference.0, 1e-6, &format!("{what}: value"));
+            assert_close(&fused.1, &reference.1, 1e-5, &format!("{what}: d/dy"));
+            assert_close(&fused.2, &reference.2, 1e-4, &format!("{what}: d/dbias"));
+            // Without autodiff the same kernel runs.
+            let plain = to_f32_vec(activate(
+                tensor(&y, shape, &Device::flex()),
+                tensor(&bias, [5], &Device::flex()),
+                tangents,
+            ));
+            assert_eq!(plain, fused.0, "{what}: flex without autodiff");
+        }
+    }
+
+    /// The activation in f64: `gain (0.2 z + 0.8 softplus(z))` and its derivative.
+    fn activation_f64(z: f64) -> (f64, f64) {
+        let softplus = z.max(0.0) + (-z.abs()).exp().ln_1p();
+        let sigmoid = 1.0 / (1.0 + (-z).exp());
+        (
+            SMOOTH_GAIN * (0.2 * z + 0.8 * softplus),
+            SMOOTH_GAIN * (0.2 + 0.8 * sigmoid),
+        )
+    }
+
+    /// `sum(activate(y, bias) * r)` in f64.
+    fn loss_f64(y: &[f64], bias: &[f64], r: &[f64], p: usize, tangents: usize) -> f64 {
+        let o = bias.len();
+        let mut loss = 0.0;
+        for i in 0..p * o {
+            let (value, first) = activation_f64(y[i] + bias[i % o]);
+            loss += value * r[i];
+            for j in 1..=tangents {
+                loss += y[j * p * o + i] * first * r[j * p * o + i];
+            }
+        }
+        loss
+    }
+
+    #[test]
+    fn gradients_match_f64_central_differences() {
+        let mut rng = SplitMix64::new(9);
+        let (p, o, tangents) = (4, 3, 3);
+        let shape = [1, (1 + tangents) * p, o];
+        let n = shape.iter().product();
+        // Pre-activations from -6 to 6, where the second derivative matters.
+        let y: Vec<f64> = normals(&mut rng, n).iter().map(|v| 2.5 * v).collect();
+        let bias = normals(&mut rng, o);
+        let r = normals(&mut rng, n);
+        let (_, grad_y, grad_bias) = loss_and_grads(activate, &y, &bias, &r, shape, tangents);
+        // The kernel sees f32 inputs: differentiate the f64 loss at those.
+        let round = |v: &[f64]| -> Vec<f64> { v.iter().map(|x| f64::from(*x as f32)).collect() };
+        let (y, bias) = (round(&y), round(&bias));
+        let h = 1e-6;
+        let fd = |at: &dyn Fn(f64) -> f64| (at(h) - at(-h)) / (2.0 * h);
+        for k in 0..n {
+            let want = fd(&|d| {
+                let mut y = y.clone();
+                y[k] += d;
+                loss_f64(&y, &bias, &r, p, tangents)
+            });
+            let got = f64::from(grad_y[k]);
+            assert!(
+                (got - want).abs() < 1e-5 * (1.0 + want.abs()),
+                "d/dy[{k}]: {got} vs {want}"
+            );
+        }
+        for c in 0..o {
+            let want = fd(&|d| {
+                let mut bias = bias.clone();
+                bias[c] += d;
+                loss_f64(&y, &bias, &r, p, tangents)
+            });
+            let got = f64::from(grad_bias[c]);
+            assert!(
+                (got - want).abs() < 1e-5 * (1.0 + want.abs()),
+                "d/dbias[{c}]: {got} vs {want}"
+            );
+        }
+    }
+
+    #[test]
+    fn stiff_and_zero_pre_activations_give_the_limits() {
+        let g = SMOOTH_GAIN;
+        let zs = [1e4, -1e4, 0.0, 88.0, -88.0, 1e-30];
+        let p = zs.len();
+        // One channel; tangents 1 everywhere, so that a tangent row shows the derivative.
+        let mut y: Vec<f64> = zs.to_vec();
+        y.extend(vec![1.0; 3 * p]);
+        let r = vec![1.0; 4 * p];
+        let (out, grad_y, grad_bias) = loss_and_grads(activate, &y, &[0.0], &r, [1, 4 * p, 1], 3);
+        assert!(
+            out.iter()
+                .chain(&grad_y)
+                .chain(&grad_bias)
+                .all(|v| v.is_finite())
+        );
+        let want_value = [g * 1e4, g * 0.2 * -1e4, g * 0.8 * 2f64.ln()];
+        let want_first = [g, 0.2 * g, 0.6 * g];
+        for i in 0..3 {
+            let (v, d) = (f64::from(out[i]), f64::from(out[p + i]));
+            assert!(
+                (v - want_value[i]).abs() < 1e-6 * (1.0 + want_value[i].abs()),
+                "a({})",
+                zs[i]
+            );
+            assert!((d - want_first[i]).abs() < 1e-6, "a'({})", zs[i]);
+            // d loss / d z = a'(z) + 3 a''(z): a'' vanishes at +-1e4 and is 0.2 g at 0.
+            let want = want_first[i] + 3.0 * if i == 2 { 0.2 * g } else { 0.0 };
+            assert!(
+                (f64::from(grad_y[i]) - want).abs() < 1e-6,
+                "dL/dz at {}",
+                zs[i]
+            );
+        }
+        // The reference agrees, stiff cases included, except for `d/dz` at exactly 0: it
+        // differentiates `exp(-|z|)`, and autodiff takes `|z|`'s derivative at 0 to be 0, which
+        // loses `a''(0)` there (the fused backward has it, checked above).
+        let reference = loss_and_grads(activate_reference, &y, &[0.0], &r, [1, 4 * p, 1], 3);
+        assert_close(&out, &reference.0, 1e-6, "stiff value");
+        let (mut got, mut want) = (grad_y.clone(), reference.1.clone());
+        got.remove(2);
+        want.remove(2);
+        assert_close(&got, &want, 1e-5, "stiff d/dy");
+    }
+}
