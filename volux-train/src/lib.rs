@@ -11,10 +11,12 @@
 //!   checkpoints, resume).
 //! - [`checkpoint`]: atomic checkpoint folders, keep-last-K, resume.
 //! - [`metrics`]: the JSON-lines metrics log.
+//! - [`bench`]: real training steps timed phase by phase, with FLOPs and the matmul peak.
 //! - [`sampling`]: latents from seeds, every layer of a sample, the sample grid;
 //!   [`animation`]: looping GIFs.
 
 pub mod animation;
+pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod losses;
