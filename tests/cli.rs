@@ -421,3 +421,50 @@ fn train_resume_and_sample_end_to_end() {
     assert!(!o.status.success());
     assert!(t.contains("tiny.toml") && t.contains("bacth"), "{t}");
 }
+
+#[test]
+fn train_bench_writes_a_per_phase_table_for_stage_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("tiny.toml");
+    std::fs::write(&config, TINY_TRAINING).unwrap();
+    let table = dir.path().join("bench/stage2.md");
+    let o = volux(&[
+        "train",
+        "bench",
+        "--config",
+        config.to_str().unwrap(),
+        "--stage",
+        "2",
+        "--steps",
+        "1",
+        "--gemm-side",
+        "128",
+        "--out",
+        table.to_str().unwrap(),
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let written = std::fs::read_to_string(&table).unwrap();
+    for row in [
+        "mapping",
+        "NeIIF field + tangents",
+        "relighting net",
+        "D_P forward",
+        "generator backward",
+        "discriminator step",
+        "whole step",
+        "matmul peak",
+    ] {
+        assert!(written.contains(row), "{row} missing:\n{written}");
+    }
+    assert!(t.contains("D_S forward"), "{t}");
+    let bad = volux(&[
+        "train",
+        "bench",
+        "--config",
+        config.to_str().unwrap(),
+        "--stage",
+        "3",
+    ]);
+    assert!(!bad.status.success() && text(&bad).contains("--stage"));
+}

@@ -34,8 +34,9 @@ pub enum Command {
     #[command(subcommand)]
     Data(data::DataCommand),
     /// Train a model from a TOML config: the staged adversarial schedule, checkpoints, sample
-    /// grids, metrics; `--resume` continues the newest checkpoint.
-    Train(train::TrainArgs),
+    /// grids, metrics; `--resume` continues the newest checkpoint. `volux train bench` times
+    /// real training steps phase by phase.
+    Train(train::TrainCommand),
     /// Render a checkpoint: layer grids, several cameras, EXR layers, rotating-light and
     /// rotating-camera GIFs, latent interpolations.
     Sample(sample::SampleArgs),

@@ -1,22 +1,42 @@
 //! `volux train`: run a training config (stage 1, then stage 2), with checkpoints, metrics,
-//! sample grids and resume.
+//! sample grids and resume; `volux train bench`: time real steps of a config phase by phase.
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
 use anyhow::Context;
-use clap::Args;
+use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use volux_model::backend::BackendKind;
+use volux_train::bench::{self, BenchOptions};
 use volux_train::config::TrainConfig;
 use volux_train::schedule::Stage;
 use volux_train::training_loop::{Event, Finish, TrainOptions, Trainer};
 
+/// `volux train --config FILE ...` trains; `volux train bench --config FILE ...` measures.
+#[derive(Debug, Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
+pub struct TrainCommand {
+    #[command(subcommand)]
+    pub command: Option<TrainSubcommand>,
+    #[command(flatten)]
+    pub train: TrainArgs,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum TrainSubcommand {
+    /// Time real training steps of a config phase by phase (mapping, field, compositing,
+    /// upsampler, relighting, each discriminator, backward, discriminator step, R1) beside
+    /// their FLOPs and the machine's measured matmul peak; prints a markdown table and writes
+    /// it to a file.
+    Bench(BenchArgs),
+}
+
 #[derive(Debug, Args)]
 pub struct TrainArgs {
     /// Training config (TOML): [model], [train], [schedule], [loss], [output], [data].
-    #[arg(long)]
-    pub config: PathBuf,
+    #[arg(long, required = true)]
+    pub config: Option<PathBuf>,
     /// Compute backend: cpu (Burn's flex) or wgpu (needs the `wgpu` cargo feature).
     #[arg(long, default_value = "cpu")]
     pub backend: BackendKind,
@@ -43,19 +63,84 @@ fn stage_name(stage: Stage) -> &'static str {
     }
 }
 
-pub fn run(args: TrainArgs) -> anyhow::Result<()> {
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// Training config (TOML).
+    #[arg(long)]
+    pub config: PathBuf,
+    /// The stage to measure (2 starts the run at stage 2's first image, without stage 1).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2))]
+    pub stage: u8,
+    /// Measured steps, after one warm-up step.
+    #[arg(long, default_value_t = 5)]
+    pub steps: usize,
+    /// Compute backend: cpu (Burn's flex) or wgpu (needs the `wgpu` cargo feature).
+    #[arg(long, default_value = "cpu")]
+    pub backend: BackendKind,
+    /// Markdown file for the table (default: runs/bench/<config>-stage<N>-<backend>.md).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Side of the square matmul that measures the machine's fp32 peak.
+    #[arg(long, default_value_t = 2048)]
+    pub gemm_side: usize,
+}
+
+fn config_name(path: &std::path::Path) -> String {
+    path.file_stem()
+        .map_or("run".into(), |s| s.to_string_lossy().into_owned())
+}
+
+pub fn run(cmd: TrainCommand) -> anyhow::Result<()> {
+    match cmd.command {
+        Some(TrainSubcommand::Bench(args)) => run_bench(args),
+        None => run_training(cmd.train),
+    }
+}
+
+fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
     let config = TrainConfig::load(&args.config)?;
-    let out = args.out.clone().unwrap_or_else(|| {
-        let name = args
-            .config
-            .file_stem()
-            .map_or("run".into(), |s| s.to_string_lossy().into_owned());
-        PathBuf::from("runs").join(name)
+    let options = BenchOptions {
+        backend: args.backend,
+        stage: if args.stage == 1 {
+            Stage::One
+        } else {
+            Stage::Two
+        },
+        steps: args.steps,
+        gemm_side: args.gemm_side,
+        ..BenchOptions::default()
+    };
+    let out = args.out.unwrap_or_else(|| {
+        PathBuf::from("runs/bench").join(format!(
+            "{}-stage{}-{}.md",
+            config_name(&args.config),
+            args.stage,
+            args.backend
+        ))
     });
+    let report = bench::run(config, &options)
+        .with_context(|| format!("benchmarking {}", args.config.display()))?;
+    let table = report.markdown();
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    std::fs::write(&out, &table).with_context(|| format!("writing {}", out.display()))?;
+    println!("{table}");
+    println!("table written to {}", out.display());
+    Ok(())
+}
+
+fn run_training(args: TrainArgs) -> anyhow::Result<()> {
+    let config_path = args.config.clone().expect("clap requires --config");
+    let config = TrainConfig::load(&config_path)?;
+    let out = args
+        .out
+        .clone()
+        .unwrap_or_else(|| PathBuf::from("runs").join(config_name(&config_path)));
     let g = config.generator();
     tracing::info!(
         "{}: {} model ({}x{} volume, {}x{} output), batch {}, {} + {} kimg, backend {}",
-        args.config.display(),
+        config_path.display(),
         config.model.preset,
         g.volume_resolution,
         g.volume_resolution,

@@ -14,6 +14,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::mapping::{MappingNetwork, MappingNetworkConfig};
 use crate::neiif::{Neiif, NeiifConfig};
+use crate::profile::{self, Phase};
 use crate::ray_sampling::{CameraConfig, camera_basis, camera_ray_batch};
 use crate::relighting::{RelightingConfig, RelightingNet};
 use crate::upsampler::{Upsampler, UpsamplerConfig, bilinear_upsample};
@@ -331,7 +332,7 @@ impl Generator {
                 lighting: lighting.map_or(0, |l| l.maps[0].batch()),
             });
         }
-        let w = self.mapping.forward(z);
+        let w = profile::timed(Phase::Mapping, || self.mapping.forward(z));
         let side = self.volume_resolution;
         let up = wants.needs_upsampler();
         let render_wants = RenderWants {
@@ -341,6 +342,8 @@ impl Generator {
             features: wants.features_lo || up,
             depth: wants.depth,
         };
+        // The renderer's own work; the field's queries inside it are timed as their own phase.
+        let compositing = profile::span(Phase::Compositing);
         let (origins, dirs) = camera_ray_batch(&self.renderer.camera, poses, side, side, &device);
         let r = self.render_rays(w.clone(), origins, dirs, lighting, render_wants, jitter)?;
         let opacity = r.opacity.clone().reshape([b, 1, side, side]);
@@ -357,6 +360,7 @@ impl Generator {
             )
         });
         let depth = r.depth.map(|d| d.reshape([b, 1, side, side]));
+        drop(compositing);
         let (mut albedo_hi, mut relit) = (None, None);
         if up {
             let x = Tensor::cat(
@@ -366,10 +370,13 @@ impl Generator {
                 ],
                 1,
             );
-            let hi = self.upsampler.forward(x, w.clone(), fade);
+            let hi = profile::timed(Phase::Upsampler, || {
+                self.upsampler.forward(x, w.clone(), fade)
+            });
             let c = hi.dims()[1];
             let a_hi = hi.clone().narrow(1, 0, 3);
             if wants.relit {
+                let _relighting = profile::span(Phase::Relighting);
                 let f = self.upsampler.factor();
                 let d_up = bilinear_upsample(diffuse_lo.clone().expect("shading rendered"), f);
                 let s_up = bilinear_upsample(specular_lo.clone().expect("shading rendered"), f);

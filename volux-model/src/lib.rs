@@ -10,12 +10,15 @@
 //!   [`discriminator`] with its explicit input gradient and the R1 penalty.
 //! - Checks: [`backend`] (device selection and a self-check), [`analytic`] fields with known
 //!   answers, the samples-per-ray [`sampling_report`].
+//! - Performance: [`profile`] (named timing spans, no-ops unless a profiler runs) and
+//!   [`flops`] (operation counts from the configured shapes).
 
 pub mod analytic;
 pub mod backend;
 pub mod blur;
 pub mod discriminator;
 pub mod equalized;
+pub mod flops;
 pub mod fused_activation;
 pub mod generator;
 pub mod light_lookup;
@@ -24,6 +27,7 @@ pub mod modulated;
 pub mod neiif;
 pub mod positional_encoding;
 pub mod presets;
+pub mod profile;
 pub mod ray_marching;
 pub mod ray_sampling;
 pub mod relighting;

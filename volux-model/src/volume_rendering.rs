@@ -15,6 +15,7 @@ use burn::tensor::{Int, Tensor};
 
 use crate::light_lookup::{LightMapBatch, directions_to_uv};
 use crate::neiif::{FieldOutput, FieldWants, Neiif};
+use crate::profile::{self, Phase};
 use crate::ray_marching;
 use crate::ray_sampling::{CameraConfig, importance_samples, segment_lengths, stratified_samples};
 
@@ -33,7 +34,9 @@ pub struct LatentField<'a> {
 
 impl Field for LatentField<'_> {
     fn query(&self, points: Tensor<3>, wants: FieldWants) -> FieldOutput {
-        self.field.forward(points, self.w.clone(), wants)
+        profile::timed(Phase::Field, || {
+            self.field.forward(points, self.w.clone(), wants)
+        })
     }
 }
 

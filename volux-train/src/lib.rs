@@ -14,10 +14,12 @@
 //! - [`checkpoint`]: atomic checkpoint folders, keep-last-K, resume.
 //! - [`run_folder`]: what in a run folder belongs to a run; refusing to mix two runs.
 //! - [`metrics`]: the JSON-lines metrics log.
+//! - [`bench`]: real training steps timed phase by phase, with FLOPs and the matmul peak.
 //! - [`sampling`]: latents from seeds, every layer of a sample, the sample grid;
 //!   [`animation`]: looping GIFs.
 
 pub mod animation;
+pub mod bench;
 pub mod checkpoint;
 pub mod config;
 pub mod fake_poses;

@@ -20,6 +20,8 @@ use burn::tensor::Tensor;
 use volux_data::batch::BatchTensors;
 use volux_model::discriminator::Discriminator;
 use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
+use volux_model::presets::DiscriminatorRole;
+use volux_model::profile::{self, Phase as ProfilePhase};
 use volux_model::volume_rendering::Lighting;
 
 use crate::losses::{
@@ -104,9 +106,10 @@ const GEOMETRY: TermNames = ["G_geometry", "D_geometry", "R1_geometry"];
 const SHADING: TermNames = ["G_shading", "D_shading", "R1_shading"];
 const PHOTO: TermNames = ["G_photo", "D_photo", "R1_photo"];
 
-/// An active discriminator with what it judges: `(names, D, fake, real, weight)`.
+/// An active discriminator with what it judges: `(names, role, D, fake, real, weight)`.
 type Pair<'a> = (
     TermNames,
+    DiscriminatorRole,
     &'a Discriminator,
     Tensor<4>,
     Option<Tensor<4>>,
@@ -139,6 +142,7 @@ fn pairs<'a>(
     let entries = [
         (
             ALBEDO_LO,
+            DiscriminatorRole::AlbedoLow,
             &d.albedo_lo,
             &fakes.albedo_lo,
             reals.map(|r| r.albedo_lo.clone()),
@@ -146,6 +150,7 @@ fn pairs<'a>(
         ),
         (
             ALBEDO_HI,
+            DiscriminatorRole::AlbedoHigh,
             &d.albedo_hi,
             &fake_albedo_hi,
             reals.map(|r| faded_input(r.albedo_hi.clone(), fade)),
@@ -153,14 +158,23 @@ fn pairs<'a>(
         ),
         (
             GEOMETRY,
+            DiscriminatorRole::Geometry,
             &d.geometry,
             &fakes.normals,
             reals.map(|r| r.normals_lo.clone()),
             w.geometry,
         ),
-        (SHADING, &d.shading, &fakes.shading, real_shading, w.shading),
+        (
+            SHADING,
+            DiscriminatorRole::Shading,
+            &d.shading,
+            &fakes.shading,
+            real_shading,
+            w.shading,
+        ),
         (
             PHOTO,
+            DiscriminatorRole::Photo,
             &d.photo,
             &fakes.relit,
             reals.map(|r| r.photo.clone()),
@@ -169,8 +183,8 @@ fn pairs<'a>(
     ];
     entries
         .into_iter()
-        .filter_map(|(name, d, fake, real, weight)| {
-            Some((name, d.as_ref()?, fake.clone()?, real, weight))
+        .filter_map(|(name, role, d, fake, real, weight)| {
+            Some((name, role, d.as_ref()?, fake.clone()?, real, weight))
         })
         .collect()
 }
@@ -188,14 +202,10 @@ fn scalar(t: &Tensor<1>) -> f64 {
     v as f64
 }
 
-/// Runs the generator for the active terms and returns the fakes and the path loss.
-fn generate(
-    g: &Generator,
-    inputs: &StepInputs,
-) -> Result<(Fakes, Option<Tensor<1>>), GeneratorError> {
-    let a = inputs.active;
+/// What the generator renders for the active terms.
+pub fn generator_wants(a: ActiveTerms) -> GeneratorWants {
     let albedo = a.albedo || a.path;
-    let wants = GeneratorWants {
+    GeneratorWants {
         albedo_lo: albedo,
         normals_lo: a.geometry,
         shading_lo: a.shading,
@@ -203,7 +213,16 @@ fn generate(
         depth: false,
         albedo_hi: albedo,
         relit: a.needs_relit(),
-    };
+    }
+}
+
+/// Runs the generator for the active terms and returns the fakes and the path loss.
+fn generate(
+    g: &Generator,
+    inputs: &StepInputs,
+) -> Result<(Fakes, Option<Tensor<1>>), GeneratorError> {
+    let a = inputs.active;
+    let wants = generator_wants(a);
     let out = g.forward(
         inputs.z.clone(),
         inputs.poses,
@@ -244,13 +263,14 @@ fn poisoned(loss: Tensor<1>, poison: bool) -> Tensor<1> {
 
 /// Logs `loss` under `names.0`, then one optimiser step of `model` on it, unless the loss or
 /// the updated weights are not finite: then `model` and `opt` are left as they were and the
-/// reason is returned.
+/// reason is returned. The backward pass and the update are profiled as `phases`.
 fn guarded_update<M: Module + Clone>(
     model: &mut M,
     opt: &mut ModuleOptimizer,
     lr: f64,
     loss: Tensor<1>,
     (total, what): (&'static str, &str),
+    (backward, update): (ProfilePhase, ProfilePhase),
     outcome: &mut StepOutcome,
 ) -> Result<(), String> {
     let value = scalar(&loss);
@@ -258,7 +278,8 @@ fn guarded_update<M: Module + Clone>(
     if !value.is_finite() {
         return Err(format!("{what} loss is {value}"));
     }
-    let mut grads = loss.backward();
+    let mut grads = profile::timed(backward, || loss.backward());
+    let _update = profile::span(update);
     let grads = GradientsParams::from_module(&mut grads, &*model);
     let (before, opt_before) = (model.clone(), opt.clone());
     *model = opt.step(lr, model.clone(), grads);
@@ -287,8 +308,11 @@ pub fn train_step(
     let (fakes, path) = generate(g, inputs)?;
     let frozen = Module::no_grad(d.clone());
     let mut g_loss: Option<Tensor<1>> = None;
-    for ([g_name, ..], disc, fake, _, weight) in pairs(&frozen, &fakes, None, &w, fade) {
-        let l = generator_loss(disc.forward(fake));
+    for ([g_name, ..], role, disc, fake, _, weight) in pairs(&frozen, &fakes, None, &w, fade) {
+        let logits = profile::timed(ProfilePhase::DiscriminatorForward(role), || {
+            disc.forward(fake)
+        });
+        let l = generator_loss(logits);
         outcome.losses.insert(g_name, scalar(&l));
         add(&mut g_loss, l.mul_scalar(weight));
     }
@@ -306,6 +330,10 @@ pub fn train_step(
         inputs.lr_g,
         poisoned(g_loss, inputs.poison == Some(Phase::Generator)),
         ("G_total", "generator"),
+        (
+            ProfilePhase::GeneratorBackward,
+            ProfilePhase::GeneratorUpdate,
+        ),
         &mut outcome,
     ) {
         outcome.skipped = Some(why);
@@ -313,15 +341,17 @@ pub fn train_step(
     }
 
     // Discriminator phase on the same fakes, detached.
+    let _d_step = profile::span(ProfilePhase::DiscriminatorStep);
     let fakes = fakes.detach();
     let mut d_loss: Option<Tensor<1>> = None;
-    for ([_, d_name, r1_name], disc, fake, real, weight) in
+    for ([_, d_name, r1_name], _, disc, fake, real, weight) in
         pairs(d, &fakes, Some(inputs.reals), &w, fade)
     {
         let real = real.expect("reals given");
         let (real_logits, r1) = match inputs.r1 {
             Some((gamma, interval)) if gamma > 0.0 => {
-                let (logits, penalty) = lazy_r1(disc, real, gamma, interval);
+                let (logits, penalty) =
+                    profile::timed(ProfilePhase::R1, || lazy_r1(disc, real, gamma, interval));
                 (logits, Some(penalty))
             }
             _ => (disc.forward(real), None),
@@ -344,6 +374,10 @@ pub fn train_step(
         inputs.lr_d,
         poisoned(d_loss, inputs.poison == Some(Phase::Discriminator)),
         ("D_total", "discriminator"),
+        (
+            ProfilePhase::DiscriminatorStep,
+            ProfilePhase::DiscriminatorStep,
+        ),
         &mut outcome,
     ) {
         // The whole step is undone, the generator's half included.

@@ -18,6 +18,7 @@ use volux_envmap::LightMapSet;
 use volux_envmap::report::SplitMix64;
 use volux_model::backend::{BackendError, BackendKind};
 use volux_model::generator::{Generator, GeneratorError};
+use volux_model::profile::{self, Phase as ProfilePhase};
 
 use crate::checkpoint::{self, CHECKPOINT_FORMAT, CheckpointError, Networks, TrainState};
 use crate::config::TrainConfig;
@@ -294,6 +295,27 @@ impl Trainer {
         &self.nets.g
     }
 
+    /// The discriminators being trained.
+    pub fn discriminators(&self) -> &Discriminators {
+        &self.nets.d
+    }
+
+    /// The training device (with autodiff).
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// Places the run at `step` with `images` seen, without training (benchmarks): the next
+    /// step trains batch `step` at the stage, fade-in and active terms of `images`. The batch
+    /// stream restarts only if `step` is not the next step anyway.
+    pub fn seek(&mut self, step: u64, images: u64) {
+        if step != self.state.step {
+            self.loader = None;
+        }
+        self.state.step = step;
+        self.state.images = images;
+    }
+
     /// Test hook: the loss of this phase of these steps is made NaN.
     #[doc(hidden)]
     pub fn poison_steps(&mut self, steps: &[(u64, Phase)]) {
@@ -367,7 +389,7 @@ impl Trainer {
                 c.train.ema_kimg,
                 c.train.ema_rampup,
             );
-            n.ema = update_ema(n.ema.clone(), &n.g, beta);
+            n.ema = profile::timed(ProfilePhase::Ema, || update_ema(n.ema.clone(), &n.g, beta));
             self.averages.add(&outcome.losses);
         }
         Ok(StepReport {
