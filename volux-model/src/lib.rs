@@ -3,7 +3,8 @@
 //! - Generator (section 3, appendix B): [`mapping`] network, [`positional_encoding`],
 //!   [`modulated`] layers, the [`neiif`] (its activation a [`fused_activation`]) (density, forward-mode normals, albedo, specular
 //!   weights, features), volume rendering ([`ray_sampling`] -> [`volume_rendering`] ->
-//!   [`ray_marching`], with the [`light_lookup`] for `D` and `S`), the [`upsampler`], the
+//!   [`ray_marching`], with the [`light_lookup`] and [`shading`] for `D` and `S`, per sample or,
+//!   for the paper's surface-relighting ablation, per pixel), the [`upsampler`], the
 //!   [`relighting`] U-Net, all tied together in [`generator`]; [`presets`] sizes the
 //!   generator and the discriminators together (`small`, `paper`).
 //! - Discriminators (section 3.4): [`equalized`] layers, StyleGAN2's [`blur`], the residual
@@ -32,6 +33,7 @@ pub mod ray_marching;
 pub mod ray_sampling;
 pub mod relighting;
 pub mod sampling_report;
+pub mod shading;
 #[cfg(test)]
 mod test_support;
 pub mod upsampler;

@@ -2,7 +2,8 @@
 //! the light-map look-up together. Along each ray it accumulates albedo `A`, normal `N`, diffuse
 //! `D = L_1(n)`, specular `S = sum_i omega_i L_{n_i}(r)` (with `r = d - 2 (d.n) n`, each
 //! evaluated per sample, which is the paper's volumetric relighting), features `F`, depth and
-//! opacity.
+//! opacity. [`Shading::Surface`] shades once per pixel instead, at the accumulated normal (the
+//! paper's ablation; [`crate::shading`]).
 //!
 //! Sampling is EG3D's: stratified samples, then importance samples drawn from the stratified
 //! pass's weights; both passes are evaluated by the field and composited together, sorted by
@@ -13,11 +14,13 @@
 use burn::config::Config;
 use burn::tensor::{Int, Tensor};
 
-use crate::light_lookup::{LightMapBatch, directions_to_uv};
+use crate::light_lookup::LightMapBatch;
 use crate::neiif::{FieldOutput, FieldWants, Neiif};
 use crate::profile::{self, Phase};
 use crate::ray_marching;
 use crate::ray_sampling::{CameraConfig, importance_samples, segment_lengths, stratified_samples};
+pub use crate::shading::Shading;
+use crate::shading::{normalize_accumulated, shade};
 
 /// Anything that gives densities (and, when asked, normals and appearance) at points
 /// `[batch, points, 3]`.
@@ -58,6 +61,10 @@ pub struct RendererConfig {
     /// second order on the uneven spacing importance sampling makes (docs/model.md).
     #[config(default = true)]
     pub midpoint: bool,
+    /// Where `D` and `S` are evaluated: per sample and accumulated (the paper's method), or once
+    /// per pixel at the accumulated normal (the paper's "surface relighting" ablation).
+    #[config(default = "Shading::Volume")]
+    pub shading: Shading,
 }
 
 /// Light maps for shading: `maps[i]` holds exponent `n_i` for every batch element, the first
@@ -296,6 +303,9 @@ pub fn render(
                 .add_scalar(1.0)
                 .mul_scalar(config.camera.far)
     });
+    let surface = wants.shading && config.shading == Shading::Surface;
+    let normals =
+        (wants.normals || surface).then(|| acc(samples.normals.clone().expect("normals queried")));
     let (mut diffuse, mut specular) = (None, None);
     if wants.shading {
         let lighting = lighting.expect("checked above");
@@ -304,32 +314,36 @@ pub fn render(
             .specular_weights
             .clone()
             .expect("shading queries specular weights");
-        assert_eq!(
-            omega.dims()[2],
-            lighting.maps.len(),
-            "one specular weight per light map"
-        );
-        let n = n.reshape([b, r * s, 3]);
-        let d = dirs
-            .clone()
-            .reshape([b, r, 1, 3])
-            .expand([b, r, s, 3])
-            .reshape([b, r * s, 3]);
-        let reflected = d.clone() - n.clone() * (d * n.clone()).sum_dim(2).mul_scalar(2.0);
-        let yaw = lighting.yaw.clone();
-        let d_samples = lighting.maps[0].lookup(n, yaw.clone());
-        let omega = omega.reshape([b, r * s, lighting.maps.len()]);
-        // One direction for every specular map: convert it to (u, v) once.
-        let (u, v) = directions_to_uv(reflected, yaw);
-        let s_samples = lighting
-            .maps
-            .iter()
-            .enumerate()
-            .map(|(i, map)| map.lookup_uv(u.clone(), v.clone()) * omega.clone().narrow(2, i, 1))
-            .reduce(|a, b| a + b)
-            .expect("at least one map");
-        diffuse = Some(acc(d_samples.reshape([b * r, s, 3])));
-        specular = Some(acc(s_samples.reshape([b * r, s, 3])));
+        let k = lighting.maps.len();
+        assert_eq!(omega.dims()[2], k, "one specular weight per light map");
+        let (d, sp) = match config.shading {
+            Shading::Volume => {
+                let d = dirs
+                    .clone()
+                    .reshape([b, r, 1, 3])
+                    .expand([b, r, s, 3])
+                    .reshape([b, r * s, 3]);
+                let (d, sp) = shade(
+                    lighting,
+                    n.reshape([b, r * s, 3]),
+                    d,
+                    omega.reshape([b, r * s, k]),
+                );
+                (
+                    acc(d.reshape([b * r, s, 3])),
+                    acc(sp.reshape([b * r, s, 3])),
+                )
+            }
+            Shading::Surface => {
+                // The accumulated specular weights carry the opacity once, like the albedo;
+                // the diffuse shading gets it explicitly.
+                let n = normalize_accumulated(normals.clone().expect("accumulated above"));
+                let (d, sp) = shade(lighting, n, dirs.clone(), acc(omega));
+                (d * opacity.clone().reshape([b, r, 1]), sp)
+            }
+        };
+        diffuse = Some(d);
+        specular = Some(sp);
     }
     RenderOutput {
         opacity,
@@ -337,9 +351,7 @@ pub fn render(
         albedo: wants
             .albedo
             .then(|| acc(samples.albedo.expect("albedo queried"))),
-        normals: wants
-            .normals
-            .then(|| acc(samples.normals.expect("normals queried"))),
+        normals: normals.filter(|_| wants.normals),
         diffuse,
         specular,
         features: wants

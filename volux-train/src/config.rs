@@ -9,6 +9,7 @@ use volux_data::dataset::{DataConfig, DataError};
 use volux_model::discriminator::DiscriminatorConfig;
 use volux_model::generator::GeneratorConfig;
 use volux_model::presets::{DiscriminatorRole, Preset};
+use volux_model::volume_rendering::Shading;
 
 use volux_data::pose_distribution::PoseDistribution;
 
@@ -45,6 +46,28 @@ pub struct ModelConfig {
     /// cannot show the top octaves of a 10-octave encoding; they turn into banding.
     #[serde(default)]
     pub frequencies: Option<usize>,
+    /// Where the renderer shades: `volume` (per sample, the paper's method; the default) or
+    /// `surface` (once per pixel at the accumulated normal: the paper's "surface relighting"
+    /// ablation).
+    #[serde(default)]
+    pub shading: Option<ShadingKind>,
+}
+
+/// The `[model] shading` key.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ShadingKind {
+    Volume,
+    Surface,
+}
+
+impl From<ShadingKind> for Shading {
+    fn from(kind: ShadingKind) -> Shading {
+        match kind {
+            ShadingKind::Volume => Shading::Volume,
+            ShadingKind::Surface => Shading::Surface,
+        }
+    }
 }
 
 impl ModelConfig {
@@ -86,6 +109,9 @@ impl ModelConfig {
                 return Err(format!("model.frequencies = {f} must be in 1..=16"));
             }
             g.neiif.frequencies = f;
+        }
+        if let Some(kind) = self.shading {
+            g.renderer.shading = kind.into();
         }
         if g.renderer.stratified < 2 {
             return Err(format!(
@@ -345,7 +371,12 @@ impl TrainConfig {
 
     /// The table that fixes every tensor's shape (compared when resuming).
     pub fn shapes(&self) -> String {
-        toml::to_string(&self.model).unwrap_or_default()
+        // `shading = "volume"` is the default written out: the same model as no key.
+        let mut model = self.model.clone();
+        if model.shading == Some(ShadingKind::Volume) {
+            model.shading = None;
+        }
+        toml::to_string(&model).unwrap_or_default()
     }
 }
 
@@ -393,6 +424,21 @@ volume_resolution = 32
         assert_eq!((g.renderer.stratified, g.renderer.importance), (6, 3));
         assert_eq!((g.neiif.sphere_prior, g.neiif.sphere_radius), (10.0, 0.35));
         assert_eq!(g.neiif.frequencies, 4);
+        assert_eq!(g.renderer.shading, Shading::Volume, "volume unless asked");
+        for (key, want) in [("volume", Shading::Volume), ("surface", Shading::Surface)] {
+            let text = TINY.replace("\"small\"", &format!("\"small\"\nshading = \"{key}\""));
+            let c = load(&text).unwrap();
+            assert_eq!(c.generator().renderer.shading, want);
+            // The shading mode is part of what a resumed run must match; writing out the
+            // default changes nothing.
+            let shapes = c.shapes();
+            assert_eq!(
+                shapes.contains("shading = \"surface\""),
+                key == "surface",
+                "{shapes}"
+            );
+            assert_eq!(shapes == load(TINY).unwrap().shapes(), key == "volume");
+        }
     }
 
     #[test]
@@ -414,6 +460,10 @@ volume_resolution = 32
             (
                 TINY.replace("\"small\"", "\"small\"\nfrequencies = 0"),
                 "model.frequencies",
+            ),
+            (
+                TINY.replace("\"small\"", "\"small\"\nshading = \"surfaces\""),
+                "shading",
             ),
             (
                 TINY.replace("resolution = 64", "resolution = 128"),

@@ -217,18 +217,38 @@ fn non_finite_steps_are_skipped_then_stop_the_run() {
 
 #[test]
 fn every_shipped_config_loads() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
     let mut names = Vec::new();
-    for entry in std::fs::read_dir(&dir).unwrap() {
-        let path = entry.unwrap().path();
-        if path.extension().is_some_and(|e| e == "toml") {
-            let c = TrainConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
-            assert!(c.train.batch > 0);
-            names.push(path.file_stem().unwrap().to_string_lossy().into_owned());
+    for folder in ["", "ablations"] {
+        for entry in std::fs::read_dir(root.join(folder)).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                let c = TrainConfig::load(&path).unwrap_or_else(|e| panic!("{e}"));
+                assert!(c.train.batch > 0);
+                let stem = path.file_stem().unwrap().to_string_lossy().into_owned();
+                names.push(if folder.is_empty() {
+                    stem
+                } else {
+                    format!("{folder}/{stem}")
+                });
+            }
         }
     }
     names.sort();
-    assert_eq!(names, ["celeba128", "ffhq256", "quickstart", "synthetic64"]);
+    assert_eq!(
+        names,
+        [
+            "ablations/full",
+            "ablations/no-geometry-loss",
+            "ablations/no-photo-loss",
+            "ablations/no-shading-loss",
+            "ablations/surface-relighting",
+            "celeba128",
+            "ffhq256",
+            "quickstart",
+            "synthetic64"
+        ]
+    );
 }
 
 #[test]
