@@ -207,7 +207,7 @@ impl Trainer {
         }
         let bank = config.data.light_bank()?;
         let examples = Examples::open(&config.data, &config.data_hashed, &bank)?;
-        let lights = Arc::new(bank.sets().to_vec());
+        let lights = bank.shared();
         let metrics_path = options.out.join("metrics.jsonl");
         let metrics =
             MetricsLog::open(&metrics_path, state.step).map_err(|e| io_error(&metrics_path, e))?;
