@@ -2,7 +2,6 @@
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
@@ -82,7 +81,7 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
         stats.misses,
         start.elapsed().as_secs_f64()
     );
-    let dataset = Dataset::new(&config, Arc::new(bank.sets().to_vec()))?;
+    let dataset = Dataset::new(&config, bank.shared())?;
     let fingerprint = dataset::fingerprint(&hashed, &bank);
     let spec = CacheSpec {
         examples: cache.examples,

@@ -168,6 +168,10 @@ impl DataConfig {
             .clone()
             .try_into()
             .map_err(|e: toml::de::Error| bad(format!("[data]: {e}")))?;
+        config
+            .lighting
+            .validate()
+            .map_err(|e| bad(format!("[data.lighting]: {e}")))?;
         let base = path.parent().unwrap_or(Path::new(""));
         config.resolve_paths(base);
         // What examples depend on: the table as written, without the example cache's own
@@ -515,7 +519,7 @@ impl Examples {
         bank: &LightMapBank,
     ) -> Result<Examples, DataError> {
         let Some(cache) = &config.cache else {
-            let dataset = Dataset::new(config, Arc::new(bank.sets().to_vec()))?;
+            let dataset = Dataset::new(config, bank.shared())?;
             return Ok(Examples::Live(Arc::new(dataset)));
         };
         let opened = ExampleCache::open(&cache.dir).map_err(|e| DataError::Cache(Box::new(e)))?;

@@ -9,6 +9,7 @@
 //! the cache only saves time.
 
 use std::path::Path;
+use std::sync::Arc;
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -43,12 +44,14 @@ pub enum LightMapBankError {
     },
 }
 
-/// The light maps of every entry of a collection, in the collection's order.
+/// The light maps of every entry of a collection, in the collection's order. The maps are
+/// shared ([`LightMapBank::shared`]), not copied, by the dataset and the trainer: a bank of
+/// hundreds of environments is held once.
 #[derive(Clone, Debug)]
 pub struct LightMapBank {
     names: Vec<String>,
     keys: Vec<CacheKey>,
-    sets: Vec<LightMapSet>,
+    sets: Arc<Vec<LightMapSet>>,
     options: PreconvolveOptions,
     stats: CacheStats,
 }
@@ -113,7 +116,7 @@ impl LightMapBank {
                 .map(|e| e.name.clone())
                 .collect(),
             keys,
-            sets,
+            sets: Arc::new(sets),
             options: options.clone(),
             stats,
         })
@@ -137,6 +140,20 @@ impl LightMapBank {
     /// All light-map sets, in the collection's order.
     pub fn sets(&self) -> &[LightMapSet] {
         &self.sets
+    }
+
+    /// All light-map sets, shared: what a [`crate::dataset::Dataset`] and the trainer hold.
+    pub fn shared(&self) -> Arc<Vec<LightMapSet>> {
+        Arc::clone(&self.sets)
+    }
+
+    /// Bytes of light-map texels held (`f32` RGB).
+    pub fn texel_bytes(&self) -> usize {
+        self.sets
+            .iter()
+            .flat_map(|set| set.maps())
+            .map(|m| std::mem::size_of_val(m.texels()))
+            .sum()
     }
 
     /// The name of entry `index`.
@@ -467,5 +484,73 @@ mod tests {
         )
         .unwrap_err();
         assert!(matches!(e, LightMapBankError::Options(_)), "{e}");
+    }
+
+    #[test]
+    fn the_maps_are_shared_not_copied() {
+        let bank =
+            LightMapBank::build(&small_collection(), &PreconvolveOptions::default(), None).unwrap();
+        let (a, b) = (bank.shared(), bank.shared());
+        assert!(Arc::ptr_eq(&a, &b));
+        assert_eq!(a.as_ptr(), bank.sets().as_ptr());
+        // 192x96 + 256x128 + 384x192 + 512x256 RGB f32 texels per environment.
+        assert_eq!(bank.texel_bytes(), 4 * 256_000 * 12);
+    }
+
+    /// The start-up cost of a run that draws from hundreds of environments (docs/data-hdri.md):
+    /// `cargo test -p volux-data --lib many_environments -- --ignored --nocapture`
+    /// (`VOLUX_ENVIRONMENTS` sets how many; the default is 400, 1.2 GB of cache files).
+    #[test]
+    #[ignore = "a measurement: tens of seconds and a gigabyte of temporary files"]
+    fn many_environments_start_up_time_and_memory() {
+        let n: usize = std::env::var("VOLUX_ENVIRONMENTS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(400);
+        let config = HdriCollectionConfig {
+            builtin: false,
+            skies: n / 2,
+            overcast: n / 8,
+            studios: n - n / 2 - n / 8,
+            ..HdriCollectionConfig::default()
+        };
+        let collection = HdriCollection::from_config(&config).unwrap();
+        let options = PreconvolveOptions::default();
+        let dir = tempfile::tempdir().unwrap();
+        let status = |key: &str| -> f64 {
+            let text = fs::read_to_string("/proc/self/status").unwrap_or_default();
+            text.lines()
+                .find(|l| l.starts_with(key))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<f64>().ok())
+                .map_or(f64::NAN, |kb| kb / 1024.0 / 1024.0)
+        };
+        let before = status("VmRSS:");
+        let t = Instant::now();
+        let cold = LightMapBank::build(&collection, &options, Some(dir.path())).unwrap();
+        let cold_s = t.elapsed().as_secs_f64();
+        let cold_peak = status("VmHWM:");
+        assert_eq!(cold.stats().misses, n);
+        let held = cold.texel_bytes() as f64 / (1u64 << 30) as f64;
+        drop(cold);
+        let t = Instant::now();
+        let warm = LightMapBank::build(&collection, &options, Some(dir.path())).unwrap();
+        let warm_s = t.elapsed().as_secs_f64();
+        assert_eq!(warm.stats().hits, n);
+        let after = status("VmRSS:");
+        let disk: u64 = cache_files(dir.path())
+            .iter()
+            .map(|f| fs::metadata(f).unwrap().len())
+            .sum();
+        println!(
+            "{n} procedural environments at {} rows, tolerance {}, {} rayon threads: \
+             cold {cold_s:.1} s, warm {warm_s:.1} s; light maps held {held:.2} GiB; \
+             resident {before:.2} GiB before, {after:.2} GiB after the warm build, \
+             peak {cold_peak:.2} GiB during the cold one; cache {:.2} GB on disk",
+            config.procedural_height,
+            options.tolerance,
+            rayon::current_num_threads(),
+            disk as f64 / 1e9
+        );
     }
 }

@@ -241,7 +241,7 @@ impl Trainer {
         }
         let bank = config.data.light_bank()?;
         let examples = Examples::open(&config.data, &config.data_hashed, &bank)?;
-        let lights = Arc::new(bank.sets().to_vec());
+        let lights = bank.shared();
         let fake_poses = config.train.fake_poses.resolve(config.data.has_poses());
         tracing::info!(
             "fakes are rendered from {}",
