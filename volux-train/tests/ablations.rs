@@ -153,6 +153,7 @@ fn ablations_build_their_discriminators_and_train() {
             backend: BackendKind::Cpu,
             out: dir.path().join(stem),
             resume: false,
+            force: false,
             max_steps: None,
         };
         let mut trainer = Trainer::new(config, options).unwrap();

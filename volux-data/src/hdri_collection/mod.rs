@@ -15,12 +15,10 @@
 //! uniformly and a yaw uniformly in `[0, 2 pi)`; the yaw is applied at light-map look-up ([`volux_envmap::LightMap::lookup_rotated`]), so a draw
 //! costs nothing and nothing is preconvolved twice.
 
-use std::f64::consts::TAU;
 use std::path::PathBuf;
 
 use serde::Deserialize;
 use volux_envmap::EnvMapError;
-use volux_envmap::report::SplitMix64;
 
 mod builtin;
 mod content;

@@ -1,5 +1,6 @@
 //! Tests of HDRI collections: built-in maps, procedural parameters, folders, configs.
 
+use std::f64::consts::TAU;
 use std::fs;
 use std::path::Path;
 
