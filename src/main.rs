@@ -1,5 +1,6 @@
 //! The `volux` command line: parses arguments and calls the library crates.
 
+mod allocator;
 mod cli;
 
 use clap::Parser;
@@ -14,6 +15,7 @@ fn main() -> std::process::ExitCode {
         .with_writer(std::io::stderr)
         .with_target(false)
         .init();
+    allocator::tune_for_training();
     match cli::run(args) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
