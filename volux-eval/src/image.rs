@@ -120,20 +120,7 @@ pub fn mean(values: &[f64]) -> f64 {
     }
 }
 
-/// Median of a list (0 when empty).
-pub fn median(values: &[f64]) -> f64 {
-    if values.is_empty() {
-        return 0.0;
-    }
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
+pub use volux_train::metrics::median;
 
 #[cfg(test)]
 mod tests {

@@ -75,11 +75,10 @@ mod tests {
     use crate::analytic::SoftSphere;
     use crate::backend::to_f32_vec;
     use crate::light_lookup::LightMapBatch;
-    use crate::neiif::{FieldOutput, FieldWants, NeiifConfig};
+    use crate::neiif::NeiifConfig;
     use crate::ray_sampling::{camera_ray_batch, camera_rays};
-    use crate::volume_rendering::{
-        Field, LatentField, RenderOutput, RenderWants, RendererConfig, render,
-    };
+    use crate::test_support::Scaled;
+    use crate::volume_rendering::{LatentField, RenderOutput, RenderWants, RendererConfig, render};
 
     const EXPONENTS: [u32; 4] = [1, 16, 32, 64];
 
@@ -262,17 +261,6 @@ mod tests {
             largest_turning_difference > 5e-2,
             "the modes agree where the normal turns ({largest_turning_difference})"
         );
-    }
-
-    /// A field whose density (and its gradient) is another's times a constant.
-    struct Scaled<'a, F: Field>(&'a F, f64);
-
-    impl<F: Field> Field for Scaled<'_, F> {
-        fn query(&self, points: Tensor<3>, wants: FieldWants) -> FieldOutput {
-            let mut out = self.0.query(points, wants);
-            out.sigma = out.sigma.mul_scalar(self.1);
-            out
-        }
     }
 
     /// Empty space (no accumulated normal at all), ordinary and very dense fields give finite

@@ -44,3 +44,19 @@ impl ModuleMapper for Reseed {
         ))
     }
 }
+
+/// A field whose density is another's times a constant (the stiff and empty cases of the
+/// renderer's tests).
+pub struct Scaled<'a, F: crate::volume_rendering::Field>(pub &'a F, pub f64);
+
+impl<F: crate::volume_rendering::Field> crate::volume_rendering::Field for Scaled<'_, F> {
+    fn query(
+        &self,
+        points: Tensor<3>,
+        wants: crate::neiif::FieldWants,
+    ) -> crate::neiif::FieldOutput {
+        let mut out = self.0.query(points, wants);
+        out.sigma = out.sigma.mul_scalar(self.1);
+        out
+    }
+}

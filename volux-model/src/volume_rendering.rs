@@ -367,6 +367,7 @@ mod tests {
     use crate::backend::to_f32_vec;
     use crate::neiif::NeiifConfig;
     use crate::ray_sampling::{camera_ray_batch, camera_rays};
+    use crate::test_support::Scaled;
     use burn::tensor::{Device, Distribution};
     use volux_envmap::LightMap;
     use volux_envmap::report::SplitMix64;
@@ -528,17 +529,6 @@ mod tests {
             hits > 4 && hits < w * h,
             "the image shows the sphere's edge ({hits} hits)"
         );
-    }
-
-    /// A field whose density (and its gradient) is another's times a constant.
-    struct Scaled<'a, F: Field>(&'a F, f64);
-
-    impl<F: Field> Field for Scaled<'_, F> {
-        fn query(&self, points: Tensor<3>, wants: FieldWants) -> FieldOutput {
-            let mut out = self.0.query(points, wants);
-            out.sigma = out.sigma.mul_scalar(self.1);
-            out
-        }
     }
 
     #[test]

@@ -20,7 +20,7 @@ use volux_model::presets::DiscriminatorRole;
 use volux_model::profile::{AlreadyRunning, Phase, PhaseTime, Profiler};
 
 use crate::config::TrainConfig;
-use crate::metrics::peak_rss_mib;
+use crate::metrics::{median, peak_rss_mib};
 use crate::schedule::{ActiveTerms, Stage};
 use crate::step::generator_wants;
 use crate::training_loop::{TrainError, TrainOptions, Trainer};
@@ -227,16 +227,6 @@ pub fn gemm_peak(device: &Device, side: usize, repeats: usize) -> f64 {
     flops::matmul(side, side, side) / best
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    let n = v.len();
-    if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    }
-}
-
 /// The discriminators the active terms run, in the table's order.
 fn active_roles(a: ActiveTerms) -> Vec<DiscriminatorRole> {
     DiscriminatorRole::ALL
@@ -398,7 +388,7 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
         rows.push(PhaseRow {
             phase: Some(*phase),
             steps: ran.len(),
-            median_s: median(ran),
+            median_s: median(&ran),
             flops: Some((*f, *counting)),
         });
     }
@@ -409,7 +399,7 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
     rows.push(PhaseRow {
         phase: None,
         steps: other.len(),
-        median_s: median(other),
+        median_s: median(&other),
         flops: None,
     });
     Ok(BenchReport {
@@ -421,7 +411,7 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
         steps: steps.len(),
         r1_interval: interval,
         rows,
-        step_median_s: median(steps.iter().map(|s| s.0).collect()),
+        step_median_s: median(&steps.iter().map(|s| s.0).collect::<Vec<_>>()),
         skipped,
         peak_rss_mib: peak_rss_mib(),
         gemm_peak: gemm,
@@ -435,8 +425,8 @@ mod tests {
 
     #[test]
     fn median_of_odd_and_even_counts() {
-        assert_eq!(median(vec![3.0, 1.0, 2.0]), 2.0);
-        assert_eq!(median(vec![4.0, 1.0, 2.0, 3.0]), 2.5);
+        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), 2.5);
     }
 
     #[test]
