@@ -60,3 +60,46 @@ impl<F: crate::volume_rendering::Field> crate::volume_rendering::Field for Scale
         out
     }
 }
+
+/// The light-map exponents of the renderer's tests.
+pub const EXPONENTS: [u32; 4] = [1, 16, 32, 64];
+
+/// Smooth random light maps (low-frequency waves, all positive, about `scale`), one per
+/// exponent of [`EXPONENTS`].
+pub fn wave_light_maps(seed: u64, scale: f64) -> Vec<volux_envmap::LightMap> {
+    let mut rng = SplitMix64::new(seed);
+    EXPONENTS
+        .iter()
+        .map(|&n| {
+            let (w, h) = (32, 16);
+            let a: Vec<f64> = (0..9).map(|_| rng.next_f64()).collect();
+            let texels = (0..w * h)
+                .map(|i| {
+                    let (x, y) = ((i % w) as f64 / w as f64, (i / w) as f64 / h as f64);
+                    std::array::from_fn(|c| {
+                        let wave = (std::f64::consts::TAU * x + 6.0 * a[3 * c]).sin()
+                            * (3.0 * y + a[3 * c + 1]).cos();
+                        (scale * (1.0 + 0.5 * wave + 0.3 * a[3 * c + 2])) as f32
+                    })
+                })
+                .collect();
+            volux_envmap::LightMap::new(n, w, h, texels)
+        })
+        .collect()
+}
+
+/// The renderer's `Lighting` of one set of [`wave_light_maps`] per batch element, rotated by
+/// `yaw`.
+pub fn lighting(
+    maps: &[Vec<volux_envmap::LightMap>],
+    yaw: &[f32],
+    device: &burn::tensor::Device,
+) -> crate::volume_rendering::Lighting {
+    let batches = (0..EXPONENTS.len())
+        .map(|i| {
+            let per: Vec<&volux_envmap::LightMap> = maps.iter().map(|m| &m[i]).collect();
+            crate::light_lookup::LightMapBatch::new(&per, device).unwrap()
+        })
+        .collect();
+    crate::volume_rendering::Lighting::new(batches, Some(Tensor::from_floats(yaw, device))).unwrap()
+}

@@ -367,49 +367,9 @@ mod tests {
     use crate::backend::to_f32_vec;
     use crate::neiif::NeiifConfig;
     use crate::ray_sampling::{camera_ray_batch, camera_rays};
-    use crate::test_support::Scaled;
+    use crate::test_support::{Scaled, lighting, wave_light_maps as light_maps};
     use burn::tensor::{Device, Distribution};
     use volux_envmap::LightMap;
-    use volux_envmap::report::SplitMix64;
-
-    const EXPONENTS: [u32; 4] = [1, 16, 32, 64];
-
-    /// Smooth random light maps (a few low-frequency waves), one per exponent.
-    fn light_maps(seed: u64, scale: f32) -> Vec<LightMap> {
-        let mut rng = SplitMix64::new(seed);
-        EXPONENTS
-            .iter()
-            .map(|&n| {
-                let (w, h) = (32, 16);
-                let a: Vec<f64> = (0..9).map(|_| rng.next_f64()).collect();
-                let texels = (0..w * h)
-                    .map(|i| {
-                        let (x, y) = ((i % w) as f64 / w as f64, (i / w) as f64 / h as f64);
-                        std::array::from_fn(|c| {
-                            let p = std::f64::consts::TAU;
-                            (scale as f64
-                                * (1.0
-                                    + 0.5
-                                        * (p * x + 6.0 * a[3 * c]).sin()
-                                        * (3.0 * y + a[3 * c + 1]).cos()
-                                    + 0.3 * a[3 * c + 2])) as f32
-                        })
-                    })
-                    .collect();
-                LightMap::new(n, w, h, texels)
-            })
-            .collect()
-    }
-
-    fn lighting(maps: &[Vec<LightMap>], yaw: &[f32], device: &Device) -> Lighting {
-        let batches = (0..EXPONENTS.len())
-            .map(|i| {
-                let per: Vec<&LightMap> = maps.iter().map(|m| &m[i]).collect();
-                LightMapBatch::new(&per, device).unwrap()
-            })
-            .collect();
-        Lighting::new(batches, Some(Tensor::from_floats(yaw, device))).unwrap()
-    }
 
     fn sphere() -> SoftSphere {
         SoftSphere {
