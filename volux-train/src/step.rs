@@ -387,3 +387,76 @@ pub fn train_step(
     }
     Ok(outcome)
 }
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use burn::tensor::{Device, Distribution};
+    use volux_model::backend::to_f32_vec;
+
+    use super::*;
+    use crate::config::TrainConfig;
+    use crate::losses::area_downsample;
+    use crate::progressive::faded_input;
+
+    /// The discriminators see what the step hands them: the reals' shading brought to the
+    /// fakes' resolution, and the high-resolution albedo (real and fake) faded while the
+    /// upsampler fades in, then as it is once grown.
+    #[test]
+    fn each_discriminator_gets_reals_and_fakes_through_the_same_door() {
+        let device = Device::flex();
+        device.seed(4);
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/quickstart.toml");
+        let config = TrainConfig::load(&path).unwrap();
+        let d = Discriminators::init(&config, &device);
+        let random = |c, side| {
+            Tensor::<4>::random([4, c, side, side], Distribution::Uniform(0.0, 1.0), &device)
+        };
+        let reals = BatchTensors {
+            photo: random(3, 64),
+            relit: random(3, 64),
+            albedo_hi: random(3, 64),
+            albedo_lo: random(3, 32),
+            normals_lo: random(3, 32),
+            mask: random(1, 64),
+            diffuse: random(3, 64),
+            specular: random(3, 64),
+        };
+        let fake_hi = random(3, 64);
+        let fakes = Fakes {
+            albedo_lo: Some(random(3, 32)),
+            albedo_hi: Some(fake_hi.clone()),
+            normals: Some(random(3, 32)),
+            shading: Some(random(9, 64)),
+            relit: Some(random(3, 64)),
+        };
+        let same = |a: &Tensor<4>, b: Tensor<4>| to_f32_vec(a.clone()) == to_f32_vec(b);
+        let find = |pairs: &[Pair], role| {
+            let p = pairs.iter().find(|p| p.1 == role).expect("active");
+            (p.3.clone(), p.4.clone().expect("reals given"))
+        };
+        let w = config.loss;
+
+        let fading = pairs(&d, &fakes, Some(&reals), &w, Some(&[0.0]));
+        assert_eq!(fading.len(), 5);
+        let (fake, real) = find(&fading, DiscriminatorRole::AlbedoHigh);
+        assert!(same(
+            &real,
+            faded_input(reals.albedo_hi.clone(), Some(&[0.0]))
+        ));
+        assert!(!same(&real, reals.albedo_hi.clone()));
+        assert!(same(&fake, faded_input(fake_hi.clone(), Some(&[0.0]))));
+        let (_, real) = find(&fading, DiscriminatorRole::Shading);
+        let want = shading_condition_lo(
+            reals.relit.clone(),
+            area_downsample(reals.diffuse.clone(), 2),
+            area_downsample(reals.specular.clone(), 2),
+        );
+        assert!(same(&real, want));
+
+        let grown = pairs(&d, &fakes, Some(&reals), &w, None);
+        let (fake, real) = find(&grown, DiscriminatorRole::AlbedoHigh);
+        assert!(same(&real, reals.albedo_hi.clone()) && same(&fake, fake_hi));
+    }
+}
