@@ -15,13 +15,13 @@
 //!
 //! The adjoints ([`blur_adjoint`], [`blur_downsample2_adjoint`]) are transposed convolutions
 //! with the same filter, stride and padding. The discriminator's explicit input gradient
-//! (`crate::discriminator`) uses them in its reverse sweep.
+//! (`crate::discriminator`) uses them in its reverse sweep. All four run as
+//! [`crate::fir_filter`]'s separable kernels (depthwise convolutions on backends other than
+//! flex).
 
-use burn::tensor::module::conv2d;
-use burn::tensor::ops::ConvOptions;
-use burn::tensor::{Tensor, TensorData};
+use burn::tensor::Tensor;
 
-use crate::equalized::conv_transpose_to;
+use crate::fir_filter::{Fir, fir2d, fir2d_adjoint};
 
 /// The 1D taps before normalisation.
 pub const FIR_TAPS: [f64; 4] = [1.0, 3.0, 3.0, 1.0];
@@ -38,51 +38,28 @@ pub fn fir_filter_2d() -> [[f64; 4]; 4] {
     f
 }
 
-/// The filter as a depthwise convolution weight `[channels, 1, 4, 4]` with the dtype and
-/// device of `like`. Carries no gradient.
-fn depthwise_filter(like: &Tensor<4>, channels: usize) -> Tensor<4> {
-    let f = fir_filter_2d();
-    let one: Vec<f64> = f.iter().flatten().copied().collect();
-    let values: Vec<f64> = (0..channels).flat_map(|_| one.iter().copied()).collect();
-    Tensor::from_data(
-        TensorData::new(values, [channels, 1, 4, 4]),
-        (&like.device(), like.dtype()),
-    )
-}
-
-fn filter_strided(x: Tensor<4>, stride: usize, padding: usize) -> Tensor<4> {
-    let channels = x.dims()[1];
-    let f = depthwise_filter(&x, channels);
-    conv2d(
-        x,
-        f,
-        None,
-        ConvOptions::new([stride, stride], [padding, padding], [1, 1], channels),
-    )
-}
-
-fn filter_strided_adjoint(
-    y: Tensor<4>,
-    stride: usize,
-    padding: usize,
-    out_hw: [usize; 2],
-) -> Tensor<4> {
-    let channels = y.dims()[1];
-    let f = depthwise_filter(&y, channels);
-    conv_transpose_to(y, f, stride, padding, channels, out_hw)
+/// The filter with `padding` and `stride`, as [`crate::fir_filter`] runs it.
+fn fir(padding: usize, stride: usize) -> Fir {
+    let sum: f64 = FIR_TAPS.iter().sum();
+    let taps = FIR_TAPS.iter().map(|t| (t / sum) as f32).collect();
+    Fir::new(taps, padding, stride)
 }
 
 /// Blurs every channel with zero padding `padding` on each side:
 /// `[batch, channels, h, w] -> [batch, channels, h + 2 padding - 3, w + 2 padding - 3]`.
 pub fn blur(x: Tensor<4>, padding: usize) -> Tensor<4> {
-    filter_strided(x, 1, padding)
+    fir2d(x, &fir(padding, 1))
 }
 
 /// The adjoint of [`blur`] with the same `padding`:
 /// `[batch, channels, h', w'] -> [batch, channels, h' - 2 padding + 3, w' - 2 padding + 3]`.
 pub fn blur_adjoint(y: Tensor<4>, padding: usize) -> Tensor<4> {
     let [_, _, h, w] = y.dims();
-    filter_strided_adjoint(y, 1, padding, [h + 3 - 2 * padding, w + 3 - 2 * padding])
+    fir2d_adjoint(
+        y,
+        &fir(padding, 1),
+        [h + 3 - 2 * padding, w + 3 - 2 * padding],
+    )
 }
 
 /// StyleGAN2's `downsample2d`: blur with padding 1, then keep every second pixel.
@@ -93,14 +70,14 @@ pub fn blur_downsample2(x: Tensor<4>) -> Tensor<4> {
         h.is_multiple_of(2) && w.is_multiple_of(2),
         "blur_downsample2 needs even sizes, got {h}x{w}"
     );
-    filter_strided(x, 2, 1)
+    fir2d(x, &fir(1, 2))
 }
 
 /// The adjoint of [`blur_downsample2`]:
 /// `[batch, channels, h, w] -> [batch, channels, 2 h, 2 w]`.
 pub fn blur_downsample2_adjoint(y: Tensor<4>) -> Tensor<4> {
     let [_, _, h, w] = y.dims();
-    filter_strided_adjoint(y, 2, 1, [2 * h, 2 * w])
+    fir2d_adjoint(y, &fir(1, 2), [2 * h, 2 * w])
 }
 
 #[cfg(test)]

@@ -23,12 +23,11 @@ use burn::backend::autodiff::checkpoint::strategy::{BalancedCheckpointing, NoChe
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::FlexTensor;
-use burn::backend::{
-    Autodiff, DispatchDevice, Flex, GradientCheckpointingStrategy, TensorMetadata,
-};
-use burn::tensor::{DType, Device, Tensor, TensorData};
+use burn::backend::{Autodiff, Flex, GradientCheckpointingStrategy, TensorMetadata};
+use burn::tensor::{DType, Tensor};
 use rayon::prelude::*;
 
+use crate::flex_extension::{Route, contiguous, flex_tensor, route};
 use crate::neiif::{SMOOTH_GAIN, smooth_lrelu, smooth_lrelu_parts};
 
 /// Rows of `o` channels per parallel task.
@@ -79,24 +78,6 @@ pub fn activate_reference(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Ten
     let derivative = derivative.expect("asked").reshape([b, 1, p, o]);
     let t = y.narrow(1, p, tangents * p).reshape([b, tangents, p, o]) * derivative;
     Tensor::cat(vec![value, t.reshape([b, tangents * p, o])], 1)
-}
-
-enum Route {
-    Flex,
-    Autodiff(GradientCheckpointingStrategy),
-    Other,
-}
-
-fn route(device: &Device) -> Route {
-    #[allow(unreachable_patterns)] // with only flex compiled in, `_` covers nothing
-    match device.as_dispatch() {
-        DispatchDevice::Flex(_) => Route::Flex,
-        DispatchDevice::Autodiff(inner) => match &**inner {
-            DispatchDevice::Flex(_) => Route::Autodiff(inner.gradient_checkpointing_strategy()),
-            _ => Route::Other,
-        },
-        _ => Route::Other,
-    }
 }
 
 /// The autodiff route for one checkpointing strategy (Burn's conversion to a concrete
@@ -156,18 +137,6 @@ impl Backward<Flex, 2> for ActivateBackward {
             grads.register::<Flex>(node.id, grad_y);
         }
     }
-}
-
-/// A contiguous f32 view of a flex tensor (copied only if it is strided).
-fn contiguous(t: &FlexTensor) -> std::borrow::Cow<'_, [f32]> {
-    match t.as_slice::<f32>() {
-        Some(s) => std::borrow::Cow::Borrowed(s),
-        None => std::borrow::Cow::Owned(t.to_contiguous().as_slice::<f32>().unwrap().to_vec()),
-    }
-}
-
-fn flex_tensor(values: Vec<f32>, shape: Vec<usize>) -> FlexTensor {
-    FlexTensor::from_data(TensorData::new(values, shape))
 }
 
 /// Splits `out: [batch, (1 + k) p, o]` into tasks of up to [`ROWS_PER_TASK`] points: each task
@@ -295,6 +264,8 @@ fn backward_flex(
 
 #[cfg(test)]
 mod tests {
+    use burn::tensor::{Device, TensorData};
+
     use super::*;
     use crate::backend::to_f32_vec;
     use crate::test_support::normals;

@@ -19,6 +19,8 @@ pub mod backend;
 pub mod blur;
 pub mod discriminator;
 pub mod equalized;
+pub mod fir_filter;
+mod flex_extension;
 pub mod flops;
 pub mod fused_activation;
 pub mod generator;

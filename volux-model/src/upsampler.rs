@@ -15,10 +15,9 @@
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::{PixelShuffle, PixelShuffleConfig};
-use burn::tensor::module::{conv_transpose2d, conv2d};
-use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
 use burn::tensor::{Device, Tensor};
 
+use crate::fir_filter::{Fir, fir2d, fir2d_adjoint};
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
 use crate::neiif::smooth_lrelu;
 
@@ -88,19 +87,7 @@ fn conv1x1(layer: &ModulatedLinear, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
 /// BlurPool with stride 1: a `[1, 2, 1]^T [1, 2, 1] / 16` blur per channel, edges replicated.
 pub fn blur_stride1(x: Tensor<4>) -> Tensor<4> {
     let [b, c, h, w] = x.dims();
-    let device = x.device();
-    let padded = pad_replicate(x);
-    let k = [1.0f32, 2.0, 1.0];
-    let kernel: Vec<f32> = (0..c)
-        .flat_map(|_| (0..9).map(|i| k[i / 3] * k[i % 3] / 16.0))
-        .collect();
-    let kernel = Tensor::<1>::from_floats(kernel.as_slice(), &device).reshape([c, 1, 3, 3]);
-    let out = conv2d(
-        padded,
-        kernel,
-        None,
-        ConvOptions::new([1, 1], [0, 0], [1, 1], c),
-    );
+    let out = fir2d(pad_replicate(x), &Fir::new(vec![0.25, 0.5, 0.25], 0, 1));
     debug_assert_eq!(out.dims(), [b, c, h, w]);
     out
 }
@@ -126,8 +113,9 @@ fn pad_replicate(x: Tensor<4>) -> Tensor<4> {
 /// `align_corners = False`), used for the shading maps and the albedo skip path.
 ///
 /// Written as a depthwise transposed convolution with the tent kernel
-/// `k_j = 1 - |j - f + 1/2| / f` (`j < 2f`) on the edge-replicated input, then a crop,
-/// because Burn's `interpolate` has no bilinear backward on the wgpu backend. `factor` must be
+/// `k_j = 1 - |j - f + 1/2| / f` (`j < 2f`) on the edge-replicated input, then a crop
+/// ([`crate::fir_filter::fir2d_adjoint`]), because Burn's `interpolate` has no bilinear backward
+/// on the wgpu backend. `factor` must be
 /// 1 or even. Equal to `interpolate` on flex (tested).
 pub fn bilinear_upsample(x: Tensor<4>, factor: usize) -> Tensor<4> {
     if factor == 1 {
@@ -142,20 +130,9 @@ pub fn bilinear_upsample(x: Tensor<4>, factor: usize) -> Tensor<4> {
     let taps: Vec<f32> = (0..2 * f)
         .map(|j| 1.0 - (j as f32 - f as f32 + 0.5).abs() / f as f32)
         .collect();
-    let kernel: Vec<f32> = (0..c)
-        .flat_map(|_| {
-            let taps = &taps;
-            (0..4 * f * f).map(move |i| taps[i / (2 * f)] * taps[i % (2 * f)])
-        })
-        .collect();
-    let kernel =
-        Tensor::<1>::from_floats(kernel.as_slice(), &x.device()).reshape([c, 1, 2 * f, 2 * f]);
-    let full = conv_transpose2d(
-        pad_replicate(x),
-        kernel,
-        None,
-        ConvTransposeOptions::new([f, f], [0, 0], [0, 0], [1, 1], c),
-    );
+    // The transposed convolution's full output of the `(h + 2) x (w + 2)` padded input.
+    let full_hw = [(h + 1) * f + 2 * f, (w + 1) * f + 2 * f];
+    let full = fir2d_adjoint(pad_replicate(x), &Fir::new(taps, 0, f), full_hw);
     let crop = 3 * f / 2;
     let out = full.narrow(2, crop, h * f).narrow(3, crop, w * f);
     debug_assert_eq!(out.dims(), [b, c, h * f, w * f]);
