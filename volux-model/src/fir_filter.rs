@@ -30,11 +30,12 @@ use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::FlexTensor;
 use burn::backend::{Autodiff, Flex, TensorMetadata};
-use burn::tensor::module::{conv_transpose2d, conv2d};
-use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
 use burn::tensor::{DType, Tensor};
 use rayon::prelude::*;
 
+use crate::equalized::conv_transpose_to;
 use crate::flex_extension::{Route, contiguous, flex_tensor, route};
 
 /// A separable filter with its zero padding and output stride.
@@ -113,22 +114,11 @@ pub fn fir2d_reference(x: Tensor<4>, fir: &Fir) -> Tensor<4> {
 }
 
 /// [`fir2d_adjoint`] as a depthwise transposed convolution: the reference, and what other
-/// backends run.
+/// backends run. `in_hw` as for [`fir2d_adjoint`].
 pub fn fir2d_adjoint_reference(y: Tensor<4>, fir: &Fir, in_hw: [usize; 2]) -> Tensor<4> {
-    let [_, channels, hy, wy] = y.dims();
+    let channels = y.dims()[1];
     let weight = fir.depthwise_weight(&y, channels);
-    let (s, p, t) = (fir.stride, fir.pad, fir.taps.len());
-    // The transposed convolution's natural size, then the rows and columns it leaves out
-    // (inputs no output reads) as output padding.
-    let pad_out = |n_in: usize, n_out: usize| n_out + 2 * p - ((n_in - 1) * s + t);
-    let options = ConvTransposeOptions::new(
-        [s, s],
-        [p, p],
-        [pad_out(hy, in_hw[0]), pad_out(wy, in_hw[1])],
-        [1, 1],
-        channels,
-    );
-    conv_transpose2d(y, weight, None, options)
+    conv_transpose_to(y, weight, fir.stride, fir.pad, channels, in_hw)
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -319,11 +309,7 @@ mod tests {
     /// inputs unread, filters longer than the padding, a 1x1 plane.
     fn cases() -> Vec<(Fir, [usize; 4])> {
         let blur = vec![0.125f32, 0.375, 0.375, 0.125];
-        let tent = |f: usize| -> Vec<f32> {
-            (0..2 * f)
-                .map(|j| 1.0 - (j as f32 - f as f32 + 0.5).abs() / f as f32)
-                .collect()
-        };
+        let tent = crate::upsampler::tent_taps;
         vec![
             (Fir::new(blur.clone(), 2, 1), [2, 3, 8, 8]),
             (Fir::new(blur.clone(), 1, 2), [2, 3, 8, 8]),
@@ -474,7 +460,7 @@ mod tests {
     }
 
     #[test]
-    fn extreme_values_pass_through_unchanged_in_kind() {
+    fn huge_tiny_and_zero_planes_stay_finite_and_exact() {
         // Huge, tiny and zero planes stay finite and exact where the filter is exact.
         let fir = Fir::new(vec![0.125, 0.375, 0.375, 0.125], 1, 2);
         let device = Device::flex();

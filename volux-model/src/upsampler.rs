@@ -115,8 +115,7 @@ fn pad_replicate(x: Tensor<4>) -> Tensor<4> {
 /// Written as a depthwise transposed convolution with the tent kernel
 /// `k_j = 1 - |j - f + 1/2| / f` (`j < 2f`) on the edge-replicated input, then a crop
 /// ([`crate::fir_filter::fir2d_adjoint`]), because Burn's `interpolate` has no bilinear backward
-/// on the wgpu backend. `factor` must be
-/// 1 or even. Equal to `interpolate` on flex (tested).
+/// on the wgpu backend. `factor` must be 1 or even. Equal to `interpolate` on flex (tested).
 pub fn bilinear_upsample(x: Tensor<4>, factor: usize) -> Tensor<4> {
     if factor == 1 {
         return x;
@@ -127,16 +126,21 @@ pub fn bilinear_upsample(x: Tensor<4>, factor: usize) -> Tensor<4> {
     );
     let [b, c, h, w] = x.dims();
     let f = factor;
-    let taps: Vec<f32> = (0..2 * f)
-        .map(|j| 1.0 - (j as f32 - f as f32 + 0.5).abs() / f as f32)
-        .collect();
     // The transposed convolution's full output of the `(h + 2) x (w + 2)` padded input.
     let full_hw = [(h + 1) * f + 2 * f, (w + 1) * f + 2 * f];
-    let full = fir2d_adjoint(pad_replicate(x), &Fir::new(taps, 0, f), full_hw);
+    let full = fir2d_adjoint(pad_replicate(x), &Fir::new(tent_taps(f), 0, f), full_hw);
     let crop = 3 * f / 2;
     let out = full.narrow(2, crop, h * f).narrow(3, crop, w * f);
     debug_assert_eq!(out.dims(), [b, c, h * f, w * f]);
     out
+}
+
+/// The 1D tent of bilinear upsampling by `factor`: `k_j = 1 - |j - f + 1/2| / f`, `j < 2f`.
+pub(crate) fn tent_taps(factor: usize) -> Vec<f32> {
+    let f = factor as f32;
+    (0..2 * factor)
+        .map(|j| 1.0 - (j as f32 - f + 0.5).abs() / f)
+        .collect()
 }
 
 impl Upsampler {
