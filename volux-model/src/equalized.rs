@@ -6,9 +6,11 @@
 
 use burn::config::Config;
 use burn::module::{Module, Param};
-use burn::tensor::module::{conv_transpose2d, conv2d};
-use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
+use burn::tensor::module::conv_transpose2d;
+use burn::tensor::ops::ConvTransposeOptions;
 use burn::tensor::{Device, Distribution, Tensor};
+
+use crate::convolution::{self, ConvGeometry};
 
 /// Configuration of an [`EqualizedLinear`] layer.
 #[derive(Config, Debug)]
@@ -177,12 +179,18 @@ impl EqualizedConv2d {
     /// The convolution with any stride and symmetric zero padding:
     /// `[batch, channels_in, h, w] -> [batch, channels_out, (h + 2 padding - k) / stride + 1, ..]`.
     pub fn forward_strided(&self, x: Tensor<4>, stride: usize, padding: usize) -> Tensor<4> {
-        conv2d(
+        let y = convolution::conv2d(
             x,
             self.effective_weight(),
-            self.effective_bias(),
-            ConvOptions::new([stride, stride], [padding, padding], [1, 1], 1),
-        )
+            ConvGeometry::new(stride, padding),
+        );
+        match self.effective_bias() {
+            Some(b) => {
+                let o = b.dims()[0];
+                y + b.reshape([1, o, 1, 1])
+            }
+            None => y,
+        }
     }
 
     /// The adjoint (transpose) of the linear part of [`Self::forward_strided`] with the same
@@ -211,7 +219,7 @@ pub(crate) fn conv_adjoint(
     padding: usize,
     input_hw: [usize; 2],
 ) -> Tensor<4> {
-    conv_transpose_to(y, weight, stride, padding, 1, input_hw)
+    convolution::conv2d_adjoint(y, weight, ConvGeometry::new(stride, padding), input_hw)
 }
 
 /// `conv_transpose2d` whose output has spatial size `out_hw` (the output padding is chosen to
@@ -248,6 +256,7 @@ pub(crate) fn conv_transpose_to(
 mod tests {
     use super::*;
     use crate::backend::to_f32_vec;
+    use crate::test_support::conv2d_f64;
     use burn::tensor::TensorData;
 
     #[test]
@@ -313,43 +322,6 @@ mod tests {
         assert!(gb.iter().all(|v| (v - 0.01).abs() < 1e-7), "{gb:?}");
     }
 
-    /// Reference convolution in f64 loops: `[b, ci, h, w]` input, `[co, ci, k, k]` weight.
-    fn conv_ref(
-        x: &[f64],
-        [b, ci, h, w]: [usize; 4],
-        wt: &[f64],
-        [co, k]: [usize; 2],
-        stride: usize,
-        pad: usize,
-    ) -> (Vec<f64>, [usize; 2]) {
-        let ho = (h + 2 * pad - k) / stride + 1;
-        let wo = (w + 2 * pad - k) / stride + 1;
-        let mut y = vec![0.0; b * co * ho * wo];
-        for n in 0..b {
-            for o in 0..co {
-                for i in 0..ho {
-                    for j in 0..wo {
-                        let mut acc = 0.0;
-                        for c in 0..ci {
-                            for u in 0..k {
-                                for v in 0..k {
-                                    let (r, s) = (i * stride + u, j * stride + v);
-                                    if r < pad || s < pad || r - pad >= h || s - pad >= w {
-                                        continue;
-                                    }
-                                    acc += x[((n * ci + c) * h + r - pad) * w + s - pad]
-                                        * wt[((o * ci + c) * k + u) * k + v];
-                                }
-                            }
-                        }
-                        y[((n * co + o) * ho + i) * wo + j] = acc;
-                    }
-                }
-            }
-        }
-        (y, [ho, wo])
-    }
-
     #[test]
     fn conv_matches_an_f64_loop_with_gain_and_bias() {
         let device = Device::flex();
@@ -365,7 +337,7 @@ mod tests {
             .collect();
         for (stride, pad) in [(1, 1), (2, 0), (2, 1)] {
             let y = to_f32_vec(layer.forward_strided(x.clone(), stride, pad));
-            let (want, _) = conv_ref(&xv, shape, &wv, [4, 3], stride, pad);
+            let (want, _) = conv2d_f64(&xv, shape, &wv, [4, 3], stride, pad);
             assert_eq!(y.len(), want.len());
             for (a, b) in y.iter().zip(&want) {
                 assert!(

@@ -17,6 +17,7 @@
 pub mod analytic;
 pub mod backend;
 pub mod blur;
+pub mod convolution;
 pub mod discriminator;
 pub mod equalized;
 pub mod fir_filter;

@@ -103,3 +103,42 @@ pub fn lighting(
         .collect();
     crate::volume_rendering::Lighting::new(batches, Some(Tensor::from_floats(yaw, device))).unwrap()
 }
+
+/// A convolution in f64 loops, straight from the definition: `x: [b, ci, h, w]`,
+/// `wt: [co, ci, k, k]`, zero padding `pad` on every side; gives `[b, co, ho, wo]` and
+/// `[ho, wo]`.
+pub fn conv2d_f64(
+    x: &[f64],
+    [b, ci, h, w]: [usize; 4],
+    wt: &[f64],
+    [co, k]: [usize; 2],
+    stride: usize,
+    pad: usize,
+) -> (Vec<f64>, [usize; 2]) {
+    let ho = (h + 2 * pad - k) / stride + 1;
+    let wo = (w + 2 * pad - k) / stride + 1;
+    let mut y = vec![0.0; b * co * ho * wo];
+    for n in 0..b {
+        for o in 0..co {
+            for i in 0..ho {
+                for j in 0..wo {
+                    let mut acc = 0.0;
+                    for c in 0..ci {
+                        for u in 0..k {
+                            for v in 0..k {
+                                let (r, s) = (i * stride + u, j * stride + v);
+                                if r < pad || s < pad || r - pad >= h || s - pad >= w {
+                                    continue;
+                                }
+                                acc += x[((n * ci + c) * h + r - pad) * w + s - pad]
+                                    * wt[((o * ci + c) * k + u) * k + v];
+                            }
+                        }
+                    }
+                    y[((n * co + o) * ho + i) * wo + j] = acc;
+                }
+            }
+        }
+    }
+    (y, [ho, wo])
+}
