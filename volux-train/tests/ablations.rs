@@ -91,12 +91,16 @@ fn each_ablation_differs_from_the_full_model_in_its_one_key() {
     .unwrap();
     let mut base = BTreeMap::new();
     leaves("", &quickstart, &mut base);
-    // The full model is the quickstart without its time limit.
+    // The full model is the quickstart with an image budget instead of its time limit.
     let changed: Vec<_> = full
         .iter()
         .filter(|(k, v)| base.get(*k) != Some(v))
+        .map(|(k, v)| (k.as_str(), v.as_str()))
         .collect();
-    assert_eq!(changed, [(&"output.minutes".to_string(), &"0".to_string())]);
+    assert_eq!(
+        changed,
+        [("output.minutes", "0"), ("schedule.stage2_kimg", "2.0")]
+    );
     for (stem, key, _, _) in ablations() {
         let mut leaves_of = BTreeMap::new();
         leaves("", &table(stem), &mut leaves_of);
