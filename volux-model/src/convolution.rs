@@ -337,6 +337,27 @@ struct View {
     col: isize,
 }
 
+impl View {
+    /// A row-major matrix of `cols` columns.
+    fn rows(m: &[f32], cols: usize) -> Self {
+        Self {
+            ptr: m.as_ptr(),
+            row: cols as isize,
+            col: 1,
+        }
+    }
+
+    /// The transpose of a row-major matrix of `cols` columns: element `(i, j)` at
+    /// `m[j * cols + i]`.
+    fn transposed(m: &[f32], cols: usize) -> Self {
+        Self {
+            ptr: m.as_ptr(),
+            row: 1,
+            col: cols as isize,
+        }
+    }
+}
+
 /// `dst (m x n, row-major) = [dst +] a (m x k) b (k x n)`.
 ///
 /// # Safety
@@ -467,6 +488,36 @@ fn col2im(col: &[f32], s: Shape, x: &mut [f32]) {
     }
 }
 
+/// Runs `image` on each image's output and input (`(values, per image)` of each), the images
+/// in parallel or one after another.
+fn for_each_image(
+    (out, out_len): (&mut [f32], usize),
+    (input, in_len): (&[f32], usize),
+    parallel: bool,
+    image: impl Fn((&mut [f32], &[f32])) + Send + Sync,
+) {
+    if parallel {
+        out.par_chunks_mut(out_len)
+            .zip(input.par_chunks(in_len))
+            .for_each(image);
+    } else {
+        out.chunks_mut(out_len)
+            .zip(input.chunks(in_len))
+            .for_each(image);
+    }
+}
+
+/// The patch matrix of image `x_b`: the image itself for a pointwise kernel, else
+/// [`im2col`] into `buffer`.
+fn patches<'a>(x_b: &'a [f32], s: Shape, buffer: &'a mut Vec<f32>) -> &'a [f32] {
+    if s.pointwise() {
+        return x_b;
+    }
+    buffer.resize(s.patch() * s.ho * s.wo, 0.0);
+    im2col(x_b, s, buffer);
+    buffer
+}
+
 /// `y_b = W col(x_b)` for every image.
 fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
     let (patch, n) = (s.patch(), s.ho * s.wo);
@@ -476,24 +527,10 @@ fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
     }
     let parallel = images_in_parallel(s.batch);
     let image = |(y_b, x_b): (&mut [f32], &[f32])| {
-        let mut col = Vec::new();
-        let col: &[f32] = if s.pointwise() {
-            x_b
-        } else {
-            col.resize(patch * n, 0.0);
-            im2col(x_b, s, &mut col);
-            &col
-        };
-        let w = View {
-            ptr: weight.as_ptr(),
-            row: patch as isize,
-            col: 1,
-        };
-        let b = View {
-            ptr: col.as_ptr(),
-            row: n as isize,
-            col: 1,
-        };
+        let mut buffer = Vec::new();
+        let col = patches(x_b, s, &mut buffer);
+        let w = View::rows(weight, patch);
+        let b = View::rows(col, n);
         // SAFETY: `weight` is `[o, patch]`, `col` is `[patch, n]`, `y_b` is `[o, n]`.
         unsafe {
             matmul(
@@ -506,15 +543,7 @@ fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
             )
         };
     };
-    if parallel {
-        y.par_chunks_mut(s.y_len())
-            .zip(x.par_chunks(s.x_len()))
-            .for_each(image);
-    } else {
-        y.chunks_mut(s.y_len())
-            .zip(x.chunks(s.x_len()))
-            .for_each(image);
-    }
+    for_each_image((&mut y, s.y_len()), (x, s.x_len()), parallel, image);
     y
 }
 
@@ -528,16 +557,8 @@ fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
     let parallel = images_in_parallel(s.batch);
     let image = |(x_b, y_b): (&mut [f32], &[f32])| {
         // W^T: element (r, o) of `[patch, o]` at weight[o * patch + r].
-        let wt = View {
-            ptr: weight.as_ptr(),
-            row: 1,
-            col: patch as isize,
-        };
-        let b = View {
-            ptr: y_b.as_ptr(),
-            row: n as isize,
-            col: 1,
-        };
+        let wt = View::transposed(weight, patch);
+        let b = View::rows(y_b, n);
         let p = gemm_parallelism(parallel);
         if s.pointwise() {
             // SAFETY: `weight` is `[o, patch]`, `y_b` is `[o, n]`, `x_b` is `[patch, n]`.
@@ -549,15 +570,7 @@ fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
             col2im(&col, s, x_b);
         }
     };
-    if parallel {
-        x.par_chunks_mut(s.x_len())
-            .zip(y.par_chunks(s.y_len()))
-            .for_each(image);
-    } else {
-        x.chunks_mut(s.x_len())
-            .zip(y.chunks(s.y_len()))
-            .for_each(image);
-    }
+    for_each_image((&mut x, s.x_len()), (y, s.y_len()), parallel, image);
     x
 }
 
@@ -575,28 +588,14 @@ fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
     let per_share = s.batch.div_ceil(shares.max(1)).max(1);
     let share = |images: std::ops::Range<usize>| -> Vec<f32> {
         let mut dw = vec![0.0f32; len];
-        let mut col = Vec::new();
+        let mut buffer = Vec::new();
         for (i, b) in images.enumerate() {
             let x_b = &x[b * s.x_len()..(b + 1) * s.x_len()];
             let g_b = &g[b * s.y_len()..(b + 1) * s.y_len()];
-            let col: &[f32] = if s.pointwise() {
-                x_b
-            } else {
-                col.resize(patch * n, 0.0);
-                im2col(x_b, s, &mut col);
-                &col
-            };
-            let a = View {
-                ptr: g_b.as_ptr(),
-                row: n as isize,
-                col: 1,
-            };
+            let col = patches(x_b, s, &mut buffer);
+            let a = View::rows(g_b, n);
             // col^T: element (j, r) of `[n, patch]` at col[r * n + j].
-            let bt = View {
-                ptr: col.as_ptr(),
-                row: 1,
-                col: n as isize,
-            };
+            let bt = View::transposed(col, n);
             // SAFETY: `g_b` is `[o, n]`, `col` is `[patch, n]`, `dw` is `[o, patch]`.
             unsafe {
                 matmul(
@@ -900,32 +899,17 @@ mod tests {
                     .collect()
             };
             let (xw, ww, yw) = (wide(&x), wide(&w), wide(&y));
-            let got = grads_of(forward_op, (&x, shape), (&w, wshape), g, in_hw, &ry);
-            assert_close(
-                &got.0,
-                &fd(&|x| forward_loss(x, &ww), &xw),
-                1e-4,
-                "conv d/dx",
-            );
-            assert_close(
-                &got.1,
-                &fd(&|w| forward_loss(&xw, w), &ww),
-                1e-4,
-                "conv d/dw",
-            );
-            let got = grads_of(conv2d_adjoint, (&y, yshape), (&w, wshape), g, in_hw, &rx);
-            assert_close(
-                &got.0,
-                &fd(&|y| adjoint_loss(y, &ww), &yw),
-                1e-4,
-                "adjoint d/dy",
-            );
-            assert_close(
-                &got.1,
-                &fd(&|w| adjoint_loss(&yw, w), &ww),
-                1e-4,
-                "adjoint d/dw",
-            );
+            let conv = grads_of(forward_op, (&x, shape), (&w, wshape), g, in_hw, &ry);
+            let adj = grads_of(conv2d_adjoint, (&y, yshape), (&w, wshape), g, in_hw, &rx);
+            let checks: [(&[f32], Vec<f64>, &str); 4] = [
+                (&conv.0, fd(&|x| forward_loss(x, &ww), &xw), "conv d/dx"),
+                (&conv.1, fd(&|w| forward_loss(&xw, w), &ww), "conv d/dw"),
+                (&adj.0, fd(&|y| adjoint_loss(y, &ww), &yw), "adjoint d/dy"),
+                (&adj.1, fd(&|w| adjoint_loss(&yw, w), &ww), "adjoint d/dw"),
+            ];
+            for (got, want, what) in checks {
+                assert_close(got, &want, 1e-4, what);
+            }
         }
     }
 

@@ -179,7 +179,7 @@ pub(crate) fn exp_nonpositive(x: f32) -> f32 {
         * r
         + 1.666_666_5e-1)
         * r
-        + 5.000_000_1e-1;
+        + 0.5;
     let y = poly * r * r + r + 1.0;
     // 2^n for n in -126..=0, a normal number built from its exponent bits (integer bit
     // arithmetic rather than a float-to-int cast, which would not vectorise).
