@@ -196,8 +196,8 @@ impl EqualizedConv2d {
     /// The adjoint (transpose) of the linear part of [`Self::forward_strided`] with the same
     /// `stride` and `padding`: maps a gradient `[batch, channels_out, h', w']` with respect to
     /// the output back to one with respect to an input of spatial size `input_hw`,
-    /// `[batch, channels_in, input_hw[0], input_hw[1]]`. A transposed convolution with the same
-    /// weights, so it is differentiable in the weights.
+    /// `[batch, channels_in, input_hw[0], input_hw[1]]`: [`convolution::conv2d_adjoint`] with the
+    /// same weights, so it is differentiable in the weights.
     pub fn adjoint(
         &self,
         y: Tensor<4>,
@@ -205,21 +205,13 @@ impl EqualizedConv2d {
         padding: usize,
         input_hw: [usize; 2],
     ) -> Tensor<4> {
-        conv_adjoint(y, self.effective_weight(), stride, padding, input_hw)
+        convolution::conv2d_adjoint(
+            y,
+            self.effective_weight(),
+            ConvGeometry::new(stride, padding),
+            input_hw,
+        )
     }
-}
-
-/// The adjoint of `conv2d(x, weight, stride, padding)` (no bias, one group) for an `x` of
-/// spatial size `input_hw`: `conv_transpose2d` with the same weight, stride and padding, and
-/// the output padding that restores `input_hw`.
-pub(crate) fn conv_adjoint(
-    y: Tensor<4>,
-    weight: Tensor<4>,
-    stride: usize,
-    padding: usize,
-    input_hw: [usize; 2],
-) -> Tensor<4> {
-    convolution::conv2d_adjoint(y, weight, ConvGeometry::new(stride, padding), input_hw)
 }
 
 /// `conv_transpose2d` whose output has spatial size `out_hw` (the output padding is chosen to
