@@ -6,6 +6,7 @@ mod environment;
 mod envmap;
 mod eval;
 mod model;
+mod plot;
 mod sample;
 mod train;
 
@@ -43,6 +44,9 @@ pub enum Command {
     /// Measure a checkpoint: multi-view and relighting consistency, geometry, sliced
     /// Wasserstein distance to the data, the same on the synthetic data; table, JSON, figures.
     Eval(eval::EvalArgs),
+    /// Plot a run's losses and light-evaluation scores (`[output] eval_kimg`) against images
+    /// and wall-clock minutes, as PNG.
+    Plot(plot::PlotArgs),
     /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
     Backend(backend::BackendArgs),
 }
@@ -55,6 +59,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(args) => train::run(args),
         Command::Sample(args) => sample::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Plot(args) => plot::run(args),
         Command::Backend(args) => backend::run(args),
     }
 }

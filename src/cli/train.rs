@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
+use volux_eval::progress::{ProgressEval, ProgressOptions};
 use volux_model::backend::BackendKind;
 use volux_train::bench::{self, BenchOptions};
 use volux_train::config::TrainConfig;
@@ -162,6 +163,21 @@ fn run_training(args: TrainArgs) -> anyhow::Result<()> {
         },
     )
     .with_context(|| format!("starting the run in {}", out.display()))?;
+    let o = &trainer.config().output;
+    if o.eval_kimg > 0.0 {
+        tracing::info!(
+            "light evaluation every {} kimg on {} samples: drawing its fixed dataset sets",
+            o.eval_kimg,
+            o.eval_samples
+        );
+        let evaluator = ProgressEval::new(
+            trainer.config(),
+            trainer.device().clone().inner(),
+            ProgressOptions::new(o.eval_samples),
+        )
+        .context("preparing the light evaluation ([output] eval_kimg)")?;
+        trainer.set_evaluator(Box::new(evaluator));
+    }
     let total = trainer.total_images();
     let terminal = std::io::stderr().is_terminal();
     let bar = if terminal {
@@ -205,6 +221,25 @@ fn run_training(args: TrainArgs) -> anyhow::Result<()> {
                 m.sec_per_step,
                 m.images_per_sec,
                 losses.join(", ")
+            );
+            if terminal {
+                bar.println(line);
+            } else {
+                println!("{line}");
+            }
+        }
+        Event::Eval(e) => {
+            let scores: Vec<String> = e
+                .eval
+                .iter()
+                .filter(|(k, _)| !k.ends_with("_floor") && !k.ends_with("_data"))
+                .map(|(k, v)| format!("{k} {v:.3}"))
+                .collect();
+            let line = format!(
+                "eval at {:.2} kimg ({:.1} s) | {}",
+                e.kimg,
+                e.eval_seconds,
+                scores.join(", ")
             );
             if terminal {
                 bar.println(line);

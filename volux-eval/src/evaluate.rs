@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use burn::tensor::Device;
 use volux_data::contact_sheet::{self, ContactSheet};
-use volux_data::dataset::{DataError, Examples, SourceConfig};
+use volux_data::dataset::{DataError, SourceConfig};
 use volux_data::relighting::RelightError;
 use volux_data::synthetic_head::SyntheticHead;
 use volux_envmap::{LightMapSet, Rgb};
@@ -18,11 +18,10 @@ use volux_train::sampling::{self, SampleError};
 use crate::geometry::{GeometryScore, render_angles};
 use crate::image::ErrorSums;
 use crate::relighting_consistency::{Invariance, ShadingScore, invariance, relit_against_shaded};
-use crate::report::{
-    EvalReport, InvarianceScore, MultiViewRow, Pair, ShadingRow, SwdRow, ViewScore,
-};
+use crate::report::{EvalReport, InvarianceScore, MultiViewRow, Pair, ShadingRow, ViewScore};
 use crate::reprojection::{DEFAULT_TOLERANCE, Reprojection, reproject};
-use crate::swd::{ImageSet, SwdError, SwdOptions, swd};
+use crate::sample_quality::sample_quality;
+use crate::swd::{SwdError, SwdOptions};
 use crate::views::{Rendered, render_model, render_synthetic};
 
 /// An environment's light maps under a short name.
@@ -97,7 +96,7 @@ pub struct Evaluation {
 
 /// Renders latents or heads: element `i` of a chunk at `pose`, under environment `env`
 /// turned by `env_yaw`.
-trait Source {
+pub(crate) trait Source {
     fn render(
         &self,
         chunk: &[u64],
@@ -107,11 +106,11 @@ trait Source {
     ) -> Result<Vec<Rendered>, EvalError>;
 }
 
-struct Model<'a> {
-    g: &'a Generator,
-    device: &'a Device,
-    z_dim: usize,
-    background: Rgb,
+pub(crate) struct Model<'a> {
+    pub g: &'a Generator,
+    pub device: &'a Device,
+    pub z_dim: usize,
+    pub background: Rgb,
 }
 
 impl Source for Model<'_> {
@@ -135,11 +134,11 @@ impl Source for Model<'_> {
     }
 }
 
-struct Heads {
-    identities: u64,
-    side: usize,
-    side_lo: usize,
-    background: Rgb,
+pub(crate) struct Heads {
+    pub identities: u64,
+    pub side: usize,
+    pub side_lo: usize,
+    pub background: Rgb,
 }
 
 impl Source for Heads {
@@ -345,77 +344,6 @@ fn rotating_light_figure(
     Ok(Some(sheet))
 }
 
-/// Planar `[3, s, s]` from pixels.
-fn planar(pixels: &[[f32; 3]]) -> Vec<f32> {
-    (0..3)
-        .flat_map(|k| pixels.iter().map(move |p| p[k]))
-        .collect()
-}
-
-/// The sliced Wasserstein distance of albedo, normals and relit image: generated images at the
-/// poses and lightings of dataset images against other dataset images, and those dataset images
-/// against the other ones.
-fn sample_quality(
-    g: &Generator,
-    device: &Device,
-    config: &TrainConfig,
-    options: &EvalOptions,
-    z_dim: usize,
-) -> Result<Vec<SwdRow>, EvalError> {
-    let bank = config.data.light_bank()?;
-    let examples = Examples::open(&config.data, &config.data_hashed, &bank)?;
-    let lights = bank.sets();
-    let (side, side_lo) = (g.output_resolution(), g.volume_resolution);
-    let empty = || {
-        [
-            ImageSet::new(side, 3),
-            ImageSet::new(side_lo, 3),
-            ImageSet::new(side, 3),
-        ]
-    };
-    let (mut fake, mut real, mut other) = (empty(), empty(), empty());
-    let b = options.batch;
-    let batches = options.samples.div_ceil(b);
-    // Far from the first batches, so that the two dataset draws share no image.
-    let other_start = 1 << 20;
-    for i in 0..batches {
-        tracing::info!("sample quality: batch {} of {batches}", i + 1);
-        let a = examples.batch(i as u64, b)?;
-        let o = examples.batch(other_start + i as u64, b)?;
-        let sets: Vec<&LightMapSet> = a.draws.iter().map(|d| &lights[d.map]).collect();
-        let yaws: Vec<f64> = a.draws.iter().map(|d| d.yaw).collect();
-        let seeds: Vec<u64> = (0..b as u64)
-            .map(|k| options.first_seed + (i * b) as u64 + k)
-            .collect();
-        let z = sampling::latents(&seeds, z_dim, device);
-        let views = render_model(g, z, &a.poses, &sets, &yaws, config.data.background)?;
-        for v in &views {
-            fake[0].images.push(planar(&v.albedo));
-            fake[1].images.push(planar(&v.normals_lo));
-            fake[2].images.push(planar(&v.relit));
-        }
-        for (set, batch) in [(&mut real, &a), (&mut other, &o)] {
-            set[0].extend_planar(&batch.albedo_hi);
-            set[1].extend_planar(&batch.normals_lo);
-            let relit: Vec<f32> = batch.relit.iter().map(|v| 0.5 * (v + 1.0)).collect();
-            set[2].extend_planar(&relit);
-        }
-    }
-    let mut rows = Vec::with_capacity(3);
-    for (k, layer) in ["albedo", "normals", "relit"].into_iter().enumerate() {
-        for set in [&mut fake[k], &mut real[k], &mut other[k]] {
-            set.images.truncate(options.samples);
-        }
-        tracing::info!("sample quality: {layer}");
-        rows.push(SwdRow {
-            layer: layer.into(),
-            model: swd(&fake[k], &other[k], &options.swd)?,
-            data: swd(&real[k], &other[k], &options.swd)?,
-        });
-    }
-    Ok(rows)
-}
-
 fn invariance_score(i: &Invariance) -> InvarianceScore {
     InvarianceScore {
         albedo_l1: i.albedo.l1(),
@@ -476,7 +404,15 @@ pub fn evaluate(
         }
         SourceConfig::Folder { .. } => None,
     };
-    let swd = sample_quality(g, device, config, options, z_dim)?;
+    let swd = sample_quality(
+        g,
+        device,
+        config,
+        options.samples,
+        options.first_seed,
+        options.batch,
+        &options.swd,
+    )?;
 
     let multiview = options
         .yaws

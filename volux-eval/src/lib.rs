@@ -8,15 +8,21 @@
 //! - [`relighting_consistency`]: albedo and normals under different lights, relit against
 //!   the physically shaded image.
 //! - [`geometry`]: accumulated normals against the normals of the rendered depth.
-//! - [`swd`]: sliced Wasserstein distance on Laplacian-pyramid patches (ProGAN).
+//! - [`swd`]: sliced Wasserstein distance on Laplacian-pyramid patches (ProGAN);
+//!   [`sample_quality`]: generated layers against two draws of the dataset.
 //! - [`views`]: the layers the measurements read, from a generator or a synthetic head.
 //! - [`evaluate`]: the whole evaluation and its figures; [`report`]: the JSON report and table.
+//! - [`progress`]: the light evaluation taken during training (`[output] eval_kimg`);
+//!   [`plot`]: a run's losses and scores against images and minutes, as PNG.
 
 pub mod evaluate;
 pub mod geometry;
 pub mod image;
+pub mod plot;
+pub mod progress;
 pub mod relighting_consistency;
 pub mod report;
 pub mod reprojection;
+pub mod sample_quality;
 pub mod swd;
 pub mod views;

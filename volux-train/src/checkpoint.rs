@@ -67,6 +67,10 @@ pub struct TrainState {
     pub skipped: u64,
     /// The run's seed (latents and ray jitter of step `s` derive from it and `s`).
     pub seed: u64,
+    /// Wall-clock seconds the run has trained so far, over all its invocations (grids,
+    /// checkpoints and evaluations included). Absent from checkpoints older than the field.
+    #[serde(default)]
+    pub seconds: f64,
     /// `[model]` as TOML: every tensor's shape follows from it.
     pub shapes: String,
     /// The discriminators that exist.

@@ -199,6 +199,11 @@ pub struct OutputConfig {
     pub keep: usize,
     /// Stop after this many minutes of training (0: run the whole schedule), checkpointing first.
     pub minutes: f64,
+    /// Thousands of images between light evaluations of the EMA generator written to
+    /// metrics.jsonl (0: none). Each one also runs at the start and the end of the run.
+    pub eval_kimg: f64,
+    /// Latents (and dataset images) of each light evaluation's sliced Wasserstein distance.
+    pub eval_samples: usize,
 }
 
 impl Default for OutputConfig {
@@ -210,6 +215,8 @@ impl Default for OutputConfig {
             checkpoint_kimg: 10.0,
             keep: 3,
             minutes: 0.0,
+            eval_kimg: 0.0,
+            eval_samples: 32,
         }
     }
 }
@@ -341,10 +348,17 @@ impl TrainConfig {
             ("grid_kimg", o.grid_kimg),
             ("checkpoint_kimg", o.checkpoint_kimg),
             ("minutes", o.minutes),
+            ("eval_kimg", o.eval_kimg),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("output.{key} = {v} must be finite and >= 0"));
             }
+        }
+        if !(2..=4096).contains(&o.eval_samples) {
+            return Err(format!(
+                "output.eval_samples = {} must be within 2..=4096",
+                o.eval_samples
+            ));
         }
         if o.keep == 0 {
             return Err("output.keep must be at least 1".into());

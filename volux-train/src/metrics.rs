@@ -1,5 +1,6 @@
-//! The metrics log: one JSON object per line (`metrics.jsonl`), one line per group of steps,
-//! with the losses averaged over the group.
+//! The metrics log: one JSON object per line (`metrics.jsonl`): one line per group of steps,
+//! with the losses averaged over the group, and one per light evaluation of the EMA generator
+//! (`[output] eval_kimg`), which holds an `eval` object instead of `losses`.
 
 use std::collections::BTreeMap;
 use std::fs::{self, File, OpenOptions};
@@ -7,6 +8,17 @@ use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 
 use serde::Serialize;
+use volux_model::generator::Generator;
+
+/// An error of a [`ProgressEvaluator`], kept whole for the chain of causes.
+pub type BoxError = Box<dyn std::error::Error + Send + Sync + 'static>;
+
+/// A measurement of the EMA generator taken during training, every `[output] eval_kimg`
+/// thousand images (volux-eval's progress evaluation implements it; training only calls it).
+pub trait ProgressEvaluator {
+    /// Named scores of `ema`, written under `eval` in metrics.jsonl.
+    fn measure(&mut self, ema: &Generator) -> Result<BTreeMap<String, f64>, BoxError>;
+}
 
 /// One line of the log.
 #[derive(Clone, Debug, Serialize)]
@@ -14,6 +26,8 @@ pub struct MetricsLine {
     pub step: u64,
     pub images: u64,
     pub kimg: f64,
+    /// Wall-clock minutes the run has trained so far (over all its invocations).
+    pub minutes: f64,
     /// The stage the group's last step trained in (1 or 2).
     pub stage: u8,
     pub fade: Vec<f64>,
@@ -25,6 +39,19 @@ pub struct MetricsLine {
     /// Peak resident memory of the process so far, in MiB (where the OS reports it).
     pub peak_rss_mib: Option<f64>,
     pub losses: BTreeMap<String, f64>,
+}
+
+/// One light evaluation of the EMA generator.
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalLine {
+    pub step: u64,
+    pub images: u64,
+    pub kimg: f64,
+    /// Wall-clock minutes the run had trained when the evaluation started.
+    pub minutes: f64,
+    /// What the evaluation itself cost.
+    pub eval_seconds: f64,
+    pub eval: BTreeMap<String, f64>,
 }
 
 /// Averages of loss terms over a group of steps.
@@ -104,7 +131,7 @@ impl MetricsLog {
         &self.path
     }
 
-    pub fn write(&mut self, line: &MetricsLine) -> std::io::Result<()> {
+    pub fn write(&mut self, line: &impl Serialize) -> std::io::Result<()> {
         let text = serde_json::to_string(line).map_err(std::io::Error::other)?;
         writeln!(self.file, "{text}")?;
         self.file.flush()
@@ -128,6 +155,7 @@ mod tests {
             step,
             images: step * 4,
             kimg: step as f64 * 0.004,
+            minutes: step as f64 / 60.0,
             stage: 1,
             fade: vec![0.5],
             sec_per_step: 1.0,

@@ -23,7 +23,9 @@ use volux_model::profile::{self, Phase as ProfilePhase};
 use crate::checkpoint::{self, CHECKPOINT_FORMAT, CheckpointError, Networks, TrainState};
 use crate::config::TrainConfig;
 use crate::fake_poses::FakePoses;
-use crate::metrics::{Averages, MetricsLine, MetricsLog, peak_rss_mib};
+use crate::metrics::{
+    Averages, BoxError, EvalLine, MetricsLine, MetricsLog, ProgressEvaluator, peak_rss_mib,
+};
 use crate::networks::{Discriminators, ema_beta, materialize, update_ema};
 use crate::run_folder;
 use crate::sampling;
@@ -55,6 +57,12 @@ pub enum TrainError {
     Checkpoint(#[from] CheckpointError),
     #[error("sample grid: {0}")]
     Sample(#[from] sampling::SampleError),
+    #[error("evaluating the EMA generator at {kimg:.2} kimg")]
+    Eval {
+        kimg: f64,
+        #[source]
+        source: BoxError,
+    },
     #[error("{path}: {message}")]
     Io { path: PathBuf, message: String },
     #[error(
@@ -111,6 +119,7 @@ pub struct StepReport {
 pub enum Event {
     Step(StepReport),
     Metrics(MetricsLine),
+    Eval(EvalLine),
     Grid(PathBuf),
     Checkpoint(PathBuf),
 }
@@ -142,6 +151,8 @@ pub struct Trainer {
     poisoned: Vec<(u64, Phase)>,
     /// Where the fakes' cameras come from (resolved for this dataset).
     fake_poses: FakePoses,
+    /// The light evaluation of `[output] eval_kimg`, when one is attached.
+    evaluator: Option<Box<dyn ProgressEvaluator>>,
 }
 
 /// The `purpose` of [`derived_seed`] for the fakes' camera draws (latents use `0..batch`, the
@@ -200,6 +211,7 @@ impl Trainer {
             nonfinite_in_row: 0,
             skipped: 0,
             seed: t.seed,
+            seconds: 0.0,
             shapes: config.shapes(),
             discriminators: nets.d.names().iter().map(|s| s.to_string()).collect(),
             config_path,
@@ -268,6 +280,7 @@ impl Trainer {
             last_checkpoint,
             poisoned: Vec::new(),
             fake_poses,
+            evaluator: None,
         })
     }
 
@@ -314,6 +327,37 @@ impl Trainer {
         }
         self.state.step = step;
         self.state.images = images;
+    }
+
+    /// Attaches the light evaluation that [`Trainer::run`] takes every `[output] eval_kimg`
+    /// thousand images (and at the run's start and end); without one, none is taken.
+    pub fn set_evaluator(&mut self, evaluator: Box<dyn ProgressEvaluator>) {
+        self.evaluator = Some(evaluator);
+    }
+
+    /// Measures the EMA generator with the attached evaluator and appends the result to
+    /// metrics.jsonl (`None` without an evaluator).
+    pub fn evaluate(&mut self) -> Result<Option<EvalLine>, TrainError> {
+        let Some(evaluator) = self.evaluator.as_mut() else {
+            return Ok(None);
+        };
+        let started = Instant::now();
+        let kimg = self.state.images as f64 / 1000.0;
+        let eval = evaluator
+            .measure(&self.nets.ema)
+            .map_err(|source| TrainError::Eval { kimg, source })?;
+        let line = EvalLine {
+            step: self.state.step,
+            images: self.state.images,
+            kimg,
+            minutes: self.state.seconds / 60.0,
+            eval_seconds: started.elapsed().as_secs_f64(),
+            eval,
+        };
+        self.metrics
+            .write(&line)
+            .map_err(|e| io_error(self.metrics.path(), e))?;
+        Ok(Some(line))
     }
 
     /// Test hook: the loss of this phase of these steps is made NaN.
@@ -448,19 +492,26 @@ impl Trainer {
     /// checkpoint of the broken state is written).
     pub fn run(&mut self, on_event: &mut dyn FnMut(Event)) -> Result<Finish, TrainError> {
         let started = Instant::now();
+        let seconds_before = self.state.seconds;
         let first_step = self.state.step;
         let out = self.config.output.clone();
         let every = |kimg: f64| (kimg * 1000.0).round() as u64;
         let (grid_every, ckpt_every) = (every(out.grid_kimg), every(out.checkpoint_kimg));
+        let eval_every = every(out.eval_kimg);
         let crossed =
             |before: u64, after: u64, every: u64| every > 0 && before / every != after / every;
         let mut group_started = Instant::now();
         let mut group_steps = 0u64;
         let mut group_images = 0u64;
         let mut last_grid = None;
+        let mut last_eval = None;
         if self.state.step == 0 {
             on_event(Event::Grid(self.write_grid()?));
             last_grid = Some(0);
+            if let Some(line) = self.evaluate()? {
+                on_event(Event::Eval(line));
+                last_eval = Some(0);
+            }
         }
         let finish = loop {
             if self.state.images >= self.total_images() {
@@ -478,6 +529,7 @@ impl Trainer {
             }
             let before = self.state.images;
             let report = self.step()?;
+            self.state.seconds = seconds_before + started.elapsed().as_secs_f64();
             group_steps += 1;
             group_images += report.images - before;
             let skipped = report.skipped.clone();
@@ -513,10 +565,23 @@ impl Trainer {
                 on_event(Event::Grid(self.write_grid()?));
                 last_grid = Some(after);
             }
+            if crossed(before, after, eval_every)
+                && let Some(line) = self.evaluate()?
+            {
+                on_event(Event::Eval(line));
+                last_eval = Some(after);
+            }
+            self.state.seconds = seconds_before + started.elapsed().as_secs_f64();
             if crossed(before, after, ckpt_every) {
                 on_event(Event::Checkpoint(self.checkpoint()?));
             }
         };
+        if last_eval != Some(self.state.images)
+            && let Some(line) = self.evaluate()?
+        {
+            on_event(Event::Eval(line));
+        }
+        self.state.seconds = seconds_before + started.elapsed().as_secs_f64();
         if self
             .last_checkpoint
             .as_ref()
@@ -544,6 +609,7 @@ impl Trainer {
             step: self.state.step,
             images,
             kimg: images as f64 / 1000.0,
+            minutes: self.state.seconds / 60.0,
             stage: match stage {
                 Stage::One => 1,
                 Stage::Two => 2,
