@@ -194,6 +194,14 @@ fn run_training(args: TrainArgs) -> anyhow::Result<()> {
         ProgressBar::hidden()
     };
     let (started, first_images) = (std::time::Instant::now(), trainer.state().images);
+    // A line above the progress bar on a terminal, plain stdout otherwise.
+    let say = |line: String| {
+        if terminal {
+            bar.println(line);
+        } else {
+            println!("{line}");
+        }
+    };
     let finish = trainer.run(&mut |event| match event {
         Event::Step(r) => {
             bar.set_position(r.images);
@@ -222,11 +230,7 @@ fn run_training(args: TrainArgs) -> anyhow::Result<()> {
                 m.images_per_sec,
                 losses.join(", ")
             );
-            if terminal {
-                bar.println(line);
-            } else {
-                println!("{line}");
-            }
+            say(line);
         }
         Event::Eval(e) => {
             let scores: Vec<String> = e
@@ -241,11 +245,7 @@ fn run_training(args: TrainArgs) -> anyhow::Result<()> {
                 e.eval_seconds,
                 scores.join(", ")
             );
-            if terminal {
-                bar.println(line);
-            } else {
-                println!("{line}");
-            }
+            say(line);
         }
         Event::Grid(p) => bar.suspend(|| tracing::info!("sample grid {}", p.display())),
         Event::Checkpoint(p) => bar.suspend(|| tracing::info!("checkpoint {}", p.display())),
