@@ -96,6 +96,20 @@ fn bad_inputs_fail_with_a_message_naming_the_problem() {
     let o = volux(&["envmap", "preconvolve", "no/such/file.hdr"]);
     assert!(!o.status.success());
     assert!(text(&o).contains("no/such/file.hdr"), "{}", text(&o));
+
+    // A taper is named as a taper; a yaw of NaN or infinity is refused instead of making
+    // all-zero light maps.
+    let night = asset("night.exr");
+    for (args, says) in [
+        (["--taper", "2"], "taper 2 must be in [0, 1)"),
+        (["--yaw", "nan"], "--yaw NaN"),
+        (["--yaw", "inf"], "--yaw inf"),
+    ] {
+        let o = volux(&[&["envmap", "preconvolve", night.as_str()][..], &args[..]].concat());
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(t.contains(says), "{says}: {t}");
+    }
 }
 
 #[test]
@@ -170,23 +184,59 @@ fn model_sampling_report_prints_a_table_and_rejects_a_missing_hdri() {
         "4",
         "--reference",
         "32",
+        "--layouts",
+        "0:8:4:4",
         "--hdri",
         &asset("sunrise.exr"),
     ]);
     assert!(o.status.success(), "{}", text(&o));
     let t = text(&o);
     assert!(
-        t.contains("| scene | stratified | importance | rule | ms |"),
+        t.contains("| scene | stratified | proposal + refine | importance | rule | ms |"),
         "{t}"
     );
+    assert!(t.contains("| 0 | 8 + 4 | 4 | midpoint |"), "{t}");
     assert_eq!(
         t.lines().filter(|l| l.starts_with("| ")).count(),
-        1 + 3 * 4,
+        1 + 4 * 4,
         "{t}"
     );
     let o = volux(&["model", "sampling-report", "--hdri", "no/such/map.exr"]);
     assert!(!o.status.success());
     assert!(text(&o).contains("no/such/map.exr"), "{}", text(&o));
+    // Out-of-range sizes are named instead of tripping an assert or printing zeros; without
+    // --hdri the shipped map is used, from any working directory.
+    for (args, says) in [
+        (["--counts", "0"], "--counts 0"),
+        (["--side", "0"], "--side 0"),
+        (["--layouts", "0:8:4:0"], "both 0"),
+    ] {
+        let o = volux(&[&["model", "sampling-report"][..], &args[..]].concat());
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(t.contains(says), "{says}: {t}");
+    }
+    let elsewhere = tempfile::tempdir().unwrap();
+    let o = Command::new(env!("CARGO_BIN_EXE_volux"))
+        .args([
+            "model",
+            "sampling-report",
+            "--side",
+            "2",
+            "--counts",
+            "2",
+            "--reference",
+            "8",
+        ])
+        .args(["--layouts", "none"])
+        .current_dir(elsewhere.path())
+        .output()
+        .unwrap();
+    let t = text(&o);
+    assert!(
+        o.status.success() && t.contains("the shipped sunrise map"),
+        "{t}"
+    );
 }
 
 #[test]
@@ -247,6 +297,14 @@ fn data_heads_writes_a_contact_sheet_and_reports_speed() {
         "{}",
         text(&bad)
     );
+    // A range of 2^64 seeds is refused before anything is allocated, naming the limit.
+    let huge = volux(&["data", "heads", "--seeds", "0-18446744073709551615"]);
+    let t = text(&huge);
+    assert_eq!(huge.status.code(), Some(1), "{t}");
+    assert!(
+        t.contains("18446744073709551616 seeds: give 1 to 1024"),
+        "{t}"
+    );
 }
 
 /// Three steps of stage 1 and three of stage 2 at batch 2 with few samples per ray.
@@ -289,7 +347,9 @@ procedural_height = 16
 fn train_resume_and_sample_end_to_end() {
     let dir = tempfile::tempdir().unwrap();
     let config = dir.path().join("tiny.toml");
-    std::fs::write(&config, TINY_TRAINING).unwrap();
+    // With the light evaluation every two steps, on two latents.
+    let tiny = TINY_TRAINING.replace("keep = 2", "keep = 2\neval_kimg = 0.004\neval_samples = 2");
+    std::fs::write(&config, &tiny).unwrap();
     let run = dir.path().join("run");
     let (config, run_s) = (config.to_str().unwrap(), run.to_str().unwrap());
 
@@ -298,15 +358,72 @@ fn train_resume_and_sample_end_to_end() {
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert!(t.contains("step limit reached: step 4"), "{t}");
+    assert!(t.contains("eval at 0.00 kimg"), "{t}");
+    let state = |step: u64| -> toml::Table {
+        let path = run.join(format!("checkpoint-{step:08}/state.toml"));
+        toml::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+    };
+    let seconds_at_4 = state(4)["seconds"].as_float().unwrap();
+    assert!(seconds_at_4 > 0.0);
     let o = volux(&["train", "--config", config, "--out", run_s, "--resume"]);
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert!(t.contains("resuming from"), "{t}");
     assert!(t.contains("schedule complete: step 6, 0.01 kimg"), "{t}");
     assert!(t.contains("stage 2"), "{t}");
+    // The run's clock goes on over the resume instead of starting again.
+    assert!(state(6)["seconds"].as_float().unwrap() > seconds_at_4);
     let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
-    assert_eq!(metrics.lines().count(), 3, "{metrics}");
+    let lines: Vec<serde_json::Value> = metrics
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let losses = lines.iter().filter(|l| l.get("losses").is_some()).count();
+    assert_eq!(losses, 3, "{metrics}");
+    let evals: Vec<&serde_json::Value> = lines.iter().filter(|l| l.get("eval").is_some()).collect();
+    let steps: Vec<u64> = evals.iter().map(|l| l["step"].as_u64().unwrap()).collect();
+    // At the start, at each crossing of 0.004 kimg, where the step limit stopped it and at
+    // the end of the schedule (a resumed run does not measure its starting point again).
+    assert_eq!(steps, [0, 2, 4, 6], "{metrics}");
+    for line in &evals {
+        let swd = line["eval"]["swd_albedo"].as_f64().unwrap();
+        assert!(swd.is_finite() && swd > 0.0, "{line}");
+        assert!(line["eval"]["multiview_albedo_psnr"].as_f64().unwrap() > 0.0);
+    }
+    let minutes: Vec<f64> = lines
+        .iter()
+        .map(|l| l["minutes"].as_f64().unwrap())
+        .collect();
+    assert!(minutes.windows(2).all(|w| w[0] <= w[1]), "{metrics}");
     assert!(run.join("checkpoint-00000006/generator_ema.bpk").is_file());
+
+    // The curves of the run, against images and against minutes.
+    let o = volux(&["plot", run_s]);
+    assert!(o.status.success(), "{}", text(&o));
+    for f in ["curves-kimg.png", "curves-minutes.png"] {
+        let png = std::fs::read(run.join("plots").join(f)).unwrap();
+        // The IHDR chunk: the width is the big-endian word at byte 16.
+        assert_eq!(&png[1..4], b"PNG", "{f}");
+        let width = u32::from_be_bytes(png[16..20].try_into().unwrap());
+        assert!(width >= 700, "{f}: {width}");
+    }
+    let o = volux(&["plot", dir.path().join("nothing").to_str().unwrap()]);
+    assert!(
+        !o.status.success() && text(&o).contains("nothing"),
+        "{}",
+        text(&o)
+    );
+    // Two runs (here the same one twice) compare score by score; that needs --out.
+    let o = volux(&["plot", run_s, run_s]);
+    assert!(
+        !o.status.success() && text(&o).contains("--out"),
+        "{}",
+        text(&o)
+    );
+    let compare = dir.path().join("compare");
+    let o = volux(&["plot", run_s, run_s, "--out", compare.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(compare.join("compare-minutes.png").is_file());
 
     // Sampling from the run folder takes its newest checkpoint.
     let samples = dir.path().join("samples");
@@ -400,7 +517,7 @@ fn train_resume_and_sample_end_to_end() {
     // A resume with a changed model is refused, naming both.
     std::fs::write(
         dir.path().join("tiny.toml"),
-        TINY_TRAINING.replace("importance = 2", "importance = 5"),
+        tiny.replace("importance = 2", "importance = 5"),
     )
     .unwrap();
     let o = volux(&["train", "--config", config, "--out", run_s, "--resume"]);
@@ -413,7 +530,7 @@ fn train_resume_and_sample_end_to_end() {
     // A typo names the file and the key.
     std::fs::write(
         dir.path().join("tiny.toml"),
-        TINY_TRAINING.replace("batch = 2", "bacth = 2"),
+        tiny.replace("batch = 2", "bacth = 2"),
     )
     .unwrap();
     let o = volux(&["train", "--config", config, "--out", run_s]);

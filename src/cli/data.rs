@@ -42,9 +42,9 @@ pub struct HeadsArgs {
     /// Rays per pixel along each axis (2 anti-aliases with 4 rays per pixel).
     #[arg(long, default_value_t = 1)]
     pub supersample: usize,
-    /// HDR environment map to light the heads with.
-    #[arg(long, default_value = "assets/hdri/sunrise.exr")]
-    pub hdri: PathBuf,
+    /// HDR environment map to light the heads with (default: the shipped sunrise map).
+    #[arg(long)]
+    pub hdri: Option<PathBuf>,
     /// Rotation of the environment, degrees.
     #[arg(long, default_value_t = 0.0)]
     pub env_yaw: f64,
@@ -120,9 +120,14 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Parses `0-7` or `1,5,9`.
-pub fn parse_seeds(text: &str) -> anyhow::Result<Vec<u64>> {
+/// The most heads `volux data heads` draws in one contact sheet.
+const MAX_HEAD_SEEDS: usize = 1024;
+
+/// Parses `0-7` or `1,5,9` into at most `max` seeds (checked before any is collected, so
+/// that `0-18446744073709551615` is an error, not an allocation).
+pub fn parse_seeds(text: &str, max: usize) -> anyhow::Result<Vec<u64>> {
     let bad = || format!("--seeds {text:?}: expected a range like 0-7 or a list like 1,5,9");
+    let too_many = |n: u128| anyhow::anyhow!("--seeds {text:?} names {n} seeds: give 1 to {max}");
     if let Some((a, b)) = text.split_once('-') {
         let (a, b): (u64, u64) = (
             a.trim().parse().with_context(bad)?,
@@ -131,7 +136,15 @@ pub fn parse_seeds(text: &str) -> anyhow::Result<Vec<u64>> {
         if a > b {
             bail!(bad());
         }
+        let count = u128::from(b - a) + 1;
+        if count > max as u128 {
+            return Err(too_many(count));
+        }
         return Ok((a..=b).collect());
+    }
+    let count = text.split(',').count();
+    if count > max {
+        return Err(too_many(count as u128));
     }
     text.split(',')
         .map(|s| s.trim().parse::<u64>().with_context(bad))
@@ -139,7 +152,7 @@ pub fn parse_seeds(text: &str) -> anyhow::Result<Vec<u64>> {
 }
 
 fn heads(args: HeadsArgs) -> anyhow::Result<()> {
-    let seeds = parse_seeds(&args.seeds)?;
+    let seeds = parse_seeds(&args.seeds, MAX_HEAD_SEEDS)?;
     if !(8..=1024).contains(&args.side) || !(1..=4).contains(&args.supersample) {
         bail!(
             "--side {} must be in 8..=1024 and --supersample {} in 1..=4",
@@ -147,7 +160,7 @@ fn heads(args: HeadsArgs) -> anyhow::Result<()> {
             args.supersample
         );
     }
-    let map = io::load(&args.hdri).with_context(|| format!("loading {}", args.hdri.display()))?;
+    let (_, map) = super::environment::env_map(args.hdri.as_deref(), "sunrise")?;
     let set = preconvolve(&map, &PreconvolveOptions::default())?;
     let lights: Vec<&LightMap> = set.maps().iter().collect();
     let settings = RenderSettings {

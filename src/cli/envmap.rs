@@ -142,6 +142,9 @@ fn info(file: &Path, preview: Option<&Path>) -> anyhow::Result<()> {
 }
 
 fn preconvolve(args: PreconvolveArgs) -> anyhow::Result<()> {
+    if !args.yaw.is_finite() {
+        bail!("--yaw {}: degrees must be a finite number", args.yaw);
+    }
     let mut map = io::load(&args.file)?;
     if args.yaw != 0.0 {
         map = map.rotated_yaw(args.yaw.to_radians());

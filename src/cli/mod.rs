@@ -45,7 +45,7 @@ pub enum Command {
     /// Wasserstein distance to the data, the same on the synthetic data; table, JSON, figures.
     Eval(eval::EvalArgs),
     /// Plot a run's losses and light-evaluation scores (`[output] eval_kimg`) against images
-    /// and wall-clock minutes, as PNG.
+    /// and wall-clock minutes, as PNG; or several runs' scores against each other.
     Plot(plot::PlotArgs),
     /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
     Backend(backend::BackendArgs),

@@ -4,14 +4,16 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::Context;
+use anyhow::{Context, bail};
+
+use super::environment::env_map;
 use clap::{Args, Subcommand, ValueEnum};
-use volux_envmap::{PreconvolveOptions, io, preconvolve};
+use volux_envmap::{PreconvolveOptions, preconvolve};
 use volux_model::backend::BackendKind;
 use volux_model::generator::{GeneratorConfig, GeneratorWants};
 use volux_model::light_lookup::LightMapBatch;
 use volux_model::presets::{self, DiscriminatorRole};
-use volux_model::sampling_report::{self, SamplingSettings};
+use volux_model::sampling_report::{self, DEFAULT_LAYOUTS, ProposalLayout, SamplingSettings};
 use volux_model::volume_rendering::Lighting;
 
 #[derive(Debug, Subcommand)]
@@ -57,9 +59,9 @@ pub struct InfoArgs {
 
 #[derive(Debug, Args)]
 pub struct SamplingArgs {
-    /// HDR environment map to light the scenes with.
-    #[arg(long, default_value = "assets/hdri/sunrise.exr")]
-    pub hdri: PathBuf,
+    /// HDR environment map to light the scenes with (default: the shipped sunrise map).
+    #[arg(long)]
+    pub hdri: Option<PathBuf>,
     /// Image side in pixels (one ray per pixel).
     #[arg(long, default_value_t = 32)]
     pub side: usize,
@@ -69,6 +71,10 @@ pub struct SamplingArgs {
     /// Samples per ray of the reference.
     #[arg(long, default_value_t = 1024)]
     pub reference: usize,
+    /// Layouts with density-only proposal passes, `S:P:R:I` (stratified, proposal, refine,
+    /// importance samples per ray), comma-separated; `none` for no such rows.
+    #[arg(long, value_delimiter = ',', default_values_t = DEFAULT_LAYOUTS.map(String::from))]
+    pub layouts: Vec<String>,
     /// Backend: cpu or wgpu.
     #[arg(long, default_value = "cpu")]
     pub backend: BackendKind,
@@ -78,9 +84,9 @@ pub struct SamplingArgs {
 pub struct BenchArgs {
     #[arg(long, value_enum, default_value = "small")]
     pub preset: Preset,
-    /// HDR environment map to light the generator with.
-    #[arg(long, default_value = "assets/hdri/sunrise.exr")]
-    pub hdri: PathBuf,
+    /// HDR environment map to light the generator with (default: the shipped sunrise map).
+    #[arg(long)]
+    pub hdri: Option<PathBuf>,
     /// Batch size.
     #[arg(long, default_value_t = 4)]
     pub batch: usize,
@@ -133,14 +139,16 @@ fn info(args: InfoArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Light maps of the default exponents of an HDRI, the same for each of `batch` elements.
+/// Light maps of the default exponents of an HDRI (the shipped sunrise map without one), the
+/// same for each of `batch` elements; with the map's name.
 fn lighting(
-    path: &std::path::Path,
+    path: Option<&std::path::Path>,
     batch: usize,
     device: &burn::tensor::Device,
-) -> anyhow::Result<Lighting> {
+) -> anyhow::Result<(Lighting, String)> {
+    let (name, map) = env_map(path, "sunrise")?;
     let load = || -> anyhow::Result<Lighting> {
-        let set = preconvolve(&io::load(path)?, &PreconvolveOptions::default())?;
+        let set = preconvolve(&map, &PreconvolveOptions::default())?;
         let maps = set
             .maps()
             .iter()
@@ -148,26 +156,46 @@ fn lighting(
             .collect::<Result<Vec<_>, _>>()?;
         Ok(Lighting::new(maps, None)?)
     };
-    load().with_context(|| format!("lighting from {}", path.display()))
+    let lighting = load().with_context(|| format!("lighting from {name}"))?;
+    Ok((lighting, name))
 }
 
 fn sampling(args: SamplingArgs) -> anyhow::Result<()> {
     let device = args.backend.device()?;
-    let lighting = lighting(&args.hdri, 1, &device)?;
+    for (flag, value, range) in [
+        ("--side", args.side, 1..=512),
+        ("--reference", args.reference, 2..=8192),
+    ] {
+        if !range.contains(&value) {
+            bail!(
+                "{flag} {value} must be in {}..={}",
+                range.start(),
+                range.end()
+            );
+        }
+    }
+    if let Some(c) = args.counts.iter().find(|c| !(1..=1024).contains(*c)) {
+        bail!("--counts {c}: each count must be in 1..=1024");
+    }
+    let (lighting, hdri) = lighting(args.hdri.as_deref(), 1, &device)?;
+    let layouts = args
+        .layouts
+        .iter()
+        .filter(|l| l.as_str() != "none")
+        .map(|l| l.parse::<ProposalLayout>())
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| anyhow::anyhow!("--layouts: {e}"))?;
     let settings = SamplingSettings {
         side: args.side,
         counts: args.counts,
         reference: args.reference,
+        layouts,
         ..SamplingSettings::default()
     };
     let rows = sampling_report::run(&settings, &lighting, &device);
     println!(
         "{}x{} rays, reference {} stratified samples, {}, lit by {}\n",
-        args.side,
-        args.side,
-        args.reference,
-        args.backend,
-        args.hdri.display()
+        args.side, args.side, args.reference, args.backend, hdri
     );
     print!("{}", sampling_report::to_markdown(&rows));
     Ok(())
@@ -186,7 +214,7 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     let device = args.backend.device()?.autodiff();
     let config = args.preset.config();
     let generator = config.init(&device)?;
-    let lighting = lighting(&args.hdri, args.batch, &device)?;
+    let (lighting, _) = lighting(args.hdri.as_deref(), args.batch, &device)?;
     let poses: Vec<(f64, f64)> = (0..args.batch)
         .map(|i| (0.3 * (i as f64 - 1.5), 0.1))
         .collect();

@@ -86,10 +86,7 @@ fn save_frames(path: &Path, frames: &[ContactSheet]) -> anyhow::Result<()> {
 }
 
 pub fn run(args: SampleArgs) -> anyhow::Result<()> {
-    let seeds = parse_seeds(&args.seeds)?;
-    if seeds.is_empty() || seeds.len() > 64 {
-        bail!("--seeds names {} seeds: give 1 to 64", seeds.len());
-    }
+    let seeds = parse_seeds(&args.seeds, 64)?;
     for (flag, values) in [("--yaw", &args.yaw), ("--pitch", &args.pitch)] {
         if let Some(v) = values.iter().find(|v| !v.is_finite() || v.abs() > 90.0) {
             bail!("{flag} {v}: degrees must be finite and within [-90, 90]");

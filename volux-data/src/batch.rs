@@ -42,14 +42,16 @@ pub struct Batch {
 }
 
 /// Why a batch's lighting cannot be put on a device.
-#[derive(Debug, thiserror::Error, PartialEq)]
+#[derive(Debug, thiserror::Error)]
 pub enum LightingTensorError {
     #[error("draw names environment {0} of a bank of {1}")]
     Index(usize, usize),
     #[error("an environment lacks the light map of exponent {0}")]
     Exponent(u32),
-    #[error("{0}")]
-    Model(String),
+    #[error(transparent)]
+    Maps(#[from] volux_model::light_lookup::LightLookupError),
+    #[error(transparent)]
+    Lighting(#[from] volux_model::volume_rendering::LightingError),
 }
 
 /// A batch on a device.
@@ -174,14 +176,11 @@ pub fn lighting_tensors(
             .iter()
             .map(|s| s.get(n).ok_or(LightingTensorError::Exponent(n)))
             .collect::<Result<_, _>>()?;
-        maps.push(
-            LightMapBatch::new(&per_example, device)
-                .map_err(|e| LightingTensorError::Model(e.to_string()))?,
-        );
+        maps.push(LightMapBatch::new(&per_example, device)?);
     }
     let yaw: Vec<f32> = yaws.iter().map(|&y| y as f32).collect();
     let yaw = Tensor::<1>::from_data(TensorData::new(yaw, [yaws.len()]), device);
-    Lighting::new(maps, Some(yaw)).map_err(|e| LightingTensorError::Model(e.to_string()))
+    Ok(Lighting::new(maps, Some(yaw))?)
 }
 
 /// Makes batches `start, start + 1, ...` on a background thread, `prefetch` ahead of the

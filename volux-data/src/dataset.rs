@@ -19,7 +19,7 @@ use volux_envmap::{LightMap, LightMapSet, PreconvolveOptions, Rgb};
 use crate::batch::{Batch, BatchLoader};
 use crate::example_cache::{self, ExampleCache};
 use crate::folder_dataset::{FolderDataset, FolderError};
-use crate::hdri_collection::{HdriCollection, HdriCollectionConfig};
+use crate::hdri_collection::{HdriCollection, HdriCollectionConfig, HdriError};
 use crate::light_map_bank::LightMapBank;
 use crate::pose_distribution::PoseDistribution;
 use crate::relighting::{DEFAULT_SPECULAR_WEIGHTS, IntrinsicImage};
@@ -215,14 +215,23 @@ impl DataConfig {
     /// The light maps of the configured collection (through the light-map cache, if any).
     pub fn light_bank(&self) -> Result<LightMapBank, DataError> {
         let collection = HdriCollection::from_config(&self.lighting)
-            .map_err(|e| DataError::Lighting(e.to_string()))?;
+            .map_err(|e| DataError::Lighting(LightingError::Collection(e)))?;
         LightMapBank::build(
             &collection,
             &PreconvolveOptions::default(),
             self.light_map_cache.as_deref(),
         )
-        .map_err(|e| DataError::Lighting(e.to_string()))
+        .map_err(|e| DataError::Lighting(LightingError::Bank(e)))
     }
+}
+
+/// Why the dataset's lighting cannot be made: its HDRI collection, or the light maps of it.
+#[derive(Debug, thiserror::Error)]
+pub enum LightingError {
+    #[error(transparent)]
+    Collection(HdriError),
+    #[error(transparent)]
+    Bank(crate::light_map_bank::LightMapBankError),
 }
 
 /// Why a dataset or an example cannot be made.
@@ -232,13 +241,13 @@ pub enum DataError {
     Config(String),
     #[error("{path}: {message}")]
     File { path: PathBuf, message: String },
-    #[error("lighting: {0}")]
-    Lighting(String),
+    #[error("lighting")]
+    Lighting(#[source] LightingError),
     #[error(transparent)]
     Cache(Box<crate::example_cache::CacheError>),
     #[error(transparent)]
     Folder(#[from] FolderError),
-    #[error("{stem}: {source}")]
+    #[error("{stem}")]
     Sample { stem: String, source: SampleError },
     #[error(
         "folder image {stem} is {width}x{height}: it must be square, {side} pixels or a multiple of it"

@@ -73,7 +73,7 @@ pub struct BuildReport {
 /// Why a cache cannot be built or read.
 #[derive(Debug, thiserror::Error)]
 pub enum CacheError {
-    #[error("{path}: {source}")]
+    #[error("{path}")]
     Io {
         path: PathBuf,
         source: std::io::Error,

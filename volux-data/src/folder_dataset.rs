@@ -166,7 +166,7 @@ pub enum FolderError {
     #[error(transparent)]
     Image(#[from] EnvMapError),
     /// A folder could not be listed or created, or a file read.
-    #[error("{}: {source}", path.display())]
+    #[error("{}", path.display())]
     Io {
         path: PathBuf,
         #[source]

@@ -32,11 +32,11 @@ pub struct CacheStats {
 /// Why a bank could not be built.
 #[derive(Debug, thiserror::Error)]
 pub enum LightMapBankError {
-    #[error("light-map options: {0}")]
+    #[error("light-map options")]
     Options(#[source] EnvMapError),
     #[error(transparent)]
     Cache(#[from] CacheError),
-    #[error("HDRI `{name}`: {source}")]
+    #[error("HDRI `{name}`")]
     Entry {
         name: String,
         #[source]
@@ -193,7 +193,7 @@ fn build_one(
     let written = match cache.map(|c| c.store(key, &set)) {
         None | Some(Ok(_)) => true,
         Some(Err(e)) => {
-            tracing::warn!("HDRI `{}`: {e}", entry.name);
+            tracing::warn!("HDRI `{}`: {}", entry.name, volux_envmap::error::chain(&e));
             false
         }
     };
@@ -472,7 +472,9 @@ mod tests {
         }])
         .unwrap();
         let e = LightMapBank::build(&collection, &PreconvolveOptions::default(), None).unwrap_err();
-        let text = e.to_string();
+        // The chain names the entry, then the file: each once.
+        let text = volux_envmap::error::chain(&e);
+        assert_eq!(text.matches("broken.exr").count(), 1, "{text}");
         assert!(
             text.contains("`broken`") && text.contains("broken.exr"),
             "{text}"

@@ -106,7 +106,7 @@ pub enum CacheFileError {
 /// Why the cache could not be used at all or a file not written.
 #[derive(Debug, thiserror::Error)]
 pub enum CacheError {
-    #[error("{}: cannot create or open the light-map cache directory: {source}", path.display())]
+    #[error("{}: cannot create or open the light-map cache directory", path.display())]
     Dir {
         path: PathBuf,
         #[source]
@@ -114,7 +114,7 @@ pub enum CacheError {
     },
     #[error("{}: is not a directory (light-map cache)", path.display())]
     NotADir { path: PathBuf },
-    #[error("cannot write light-map cache file: {0}")]
+    #[error("cannot write light-map cache file")]
     Write(#[source] EnvMapError),
 }
 

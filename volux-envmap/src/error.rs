@@ -7,7 +7,7 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum EnvMapError {
     /// The file could not be opened, read or written.
-    #[error("{}: {source}", path.display())]
+    #[error("{}", path.display())]
     Io {
         path: PathBuf,
         #[source]
@@ -77,7 +77,40 @@ pub enum EnvMapError {
     /// A tolerance that is not a positive finite number below 1.
     #[error("tolerance {0} must be in (0, 1)")]
     Tolerance(f64),
+    /// A taper outside `[0, 1)`.
+    #[error("taper {0} must be in [0, 1)")]
+    Taper(f64),
 }
 
 /// Label of a map that did not come from a file.
 pub(crate) const IN_MEMORY: &str = "in-memory map";
+
+/// An error and every cause under it, `outer: cause: root cause`, the way `{:#}` prints an
+/// `anyhow` chain: for the places that must put an error into one line of text (a log
+/// warning, a message about several keys). The error types themselves never repeat their
+/// source in their own message, so nothing is printed twice.
+pub fn chain(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(e) = cause {
+        text.push_str(": ");
+        text.push_str(&e.to_string());
+        cause = e.source();
+    }
+    text
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_chain_names_every_cause_once() {
+        let e = EnvMapError::Io {
+            path: PathBuf::from("maps/sky.exr"),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such file"),
+        };
+        assert_eq!(e.to_string(), "maps/sky.exr");
+        assert_eq!(chain(&e), "maps/sky.exr: no such file");
+    }
+}

@@ -76,7 +76,7 @@ impl PreconvolveOptions {
             return Err(EnvMapError::Tolerance(self.tolerance));
         }
         if !(0.0..1.0).contains(&self.taper) {
-            return Err(EnvMapError::Tolerance(self.taper));
+            return Err(EnvMapError::Taper(self.taper));
         }
         Ok(())
     }

@@ -72,13 +72,13 @@ impl EvalOptions {
 pub enum EvalError {
     #[error("{0}")]
     Options(String),
-    #[error("rendering the generator: {0}")]
+    #[error("rendering the generator")]
     Sample(#[from] SampleError),
-    #[error("relighting a synthetic head: {0}")]
+    #[error("relighting a synthetic head")]
     Relight(#[from] RelightError),
-    #[error("dataset: {0}")]
+    #[error("dataset")]
     Data(#[from] DataError),
-    #[error("sliced Wasserstein distance: {0}")]
+    #[error("sliced Wasserstein distance")]
     Swd(#[from] SwdError),
 }
 

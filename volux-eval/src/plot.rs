@@ -1,5 +1,5 @@
 //! `volux plot`: a run's losses and light-evaluation scores (`metrics.jsonl`) against images
-//! and against minutes, as PNG. Each quantity gets its own panel; a score's reference (the
+//! and against minutes, as PNG; or the scores of several runs against each other (A/B). Each quantity gets its own panel; a score's reference (the
 //! dataset's floor or the data's own score) is drawn dashed in the score's colour.
 
 use std::collections::BTreeMap;
@@ -37,6 +37,11 @@ pub enum PlotError {
     },
     #[error("{} holds no metrics lines yet", path.display())]
     Empty { path: PathBuf },
+    #[error(
+        "{} has no evaluation lines to compare: train it with `[output] eval_kimg` set",
+        run.display()
+    )]
+    NoEvaluations { run: PathBuf },
     #[error("the shipped font could not be loaded")]
     Font,
     #[error("drawing the plot")]
@@ -320,6 +325,66 @@ pub fn panels(metrics: &RunMetrics, axis: XAxis) -> Vec<Panel> {
     out.into_iter().filter(|p| !p.curves.is_empty()).collect()
 }
 
+/// The light evaluation's scores of several runs along `axis`, one panel per score with one
+/// curve per run (in the order given, named by its label) and the first run's reference
+/// dashed, then every run's throughput: an A/B comparison at equal images or equal minutes.
+pub fn compare_panels(runs: &[(String, RunMetrics)], axis: XAxis) -> Vec<Panel> {
+    let reference_colour = runs.len();
+    let mut scores: Vec<String> = runs
+        .iter()
+        .flat_map(|(_, m)| {
+            keys(&m.evals, |k| {
+                !k.ends_with("_floor") && !k.ends_with("_data")
+            })
+        })
+        .collect();
+    scores.sort();
+    scores.dedup();
+    let mut out = Vec::new();
+    for key in scores {
+        let mut curves: Vec<Curve> = runs
+            .iter()
+            .enumerate()
+            .map(|(colour, (name, m))| Curve {
+                name: name.clone(),
+                points: series(&m.evals, &key, axis),
+                dashed: false,
+                colour,
+            })
+            .collect();
+        if let Some((_, first)) = runs.first() {
+            for (suffix, label) in [("_floor", "floor"), ("_data", "data")] {
+                let points = series(&first.evals, &format!("{key}{suffix}"), axis);
+                if !points.is_empty() {
+                    curves.push(Curve {
+                        name: label.into(),
+                        points,
+                        dashed: true,
+                        colour: reference_colour,
+                    });
+                }
+            }
+        }
+        curves.retain(|c| !c.points.is_empty());
+        out.push(Panel { title: key, curves });
+    }
+    out.push(Panel {
+        title: "images_per_sec".into(),
+        curves: runs
+            .iter()
+            .enumerate()
+            .map(|(colour, (name, m))| Curve {
+                name: name.clone(),
+                points: series(&m.training, "images_per_sec", axis),
+                dashed: false,
+                colour,
+            })
+            .filter(|c| !c.points.is_empty())
+            .collect(),
+    });
+    out.into_iter().filter(|p| !p.curves.is_empty()).collect()
+}
+
 /// `[lo, hi]` with a margin, never empty.
 fn padded(lo: f64, hi: f64) -> (f64, f64) {
     if !(lo.is_finite() && hi.is_finite()) {
@@ -408,8 +473,12 @@ pub fn render(
                     chart.draw_series(LineSeries::new(points, style))
                 }
                 .map_err(draw_error)?;
+                // The swatch is drawn the way its curve is: two dashes for a reference.
+                let gap = if curve.dashed { 4 } else { 0 };
                 drawn.label(curve.name.clone()).legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2))
+                    EmptyElement::at((x, y))
+                        + PathElement::new(vec![(0, 0), (9 - gap, 0)], colour.stroke_width(2))
+                        + PathElement::new(vec![(9 + gap, 0), (18, 0)], colour.stroke_width(2))
                 });
             }
             chart
@@ -427,6 +496,55 @@ pub fn render(
     Ok((w, h, pixels))
 }
 
+/// Plots the light evaluations of `runs` (label, run folder) against each other into `out`
+/// (`compare-kimg.png`, and `compare-minutes.png` when every log carries the run clock);
+/// returns the files written.
+pub fn plot_runs(runs: &[(String, PathBuf)], out: &Path) -> Result<Vec<PathBuf>, PlotError> {
+    let metrics = runs
+        .iter()
+        .map(|(name, run)| {
+            let m = RunMetrics::read(&run.join(volux_train::run_folder::METRICS))?;
+            if m.evals.is_empty() {
+                return Err(PlotError::NoEvaluations { run: run.clone() });
+            }
+            Ok((name.clone(), m))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut axes = vec![XAxis::Kimg];
+    if metrics.iter().all(|(_, m)| m.has_minutes()) {
+        axes.push(XAxis::Minutes);
+    }
+    let names: Vec<&str> = runs.iter().map(|(n, _)| n.as_str()).collect();
+    let title = format!("volux runs {}", names.join(" / "));
+    write_plots(out, "compare", &axes, |axis| {
+        render(&title, &compare_panels(&metrics, axis), axis)
+    })
+}
+
+/// Renders one image per axis with `draw` and writes it to `out/<stem>-<axis>.png`.
+fn write_plots(
+    out: &Path,
+    stem: &str,
+    axes: &[XAxis],
+    draw: impl Fn(XAxis) -> Result<(usize, usize, Vec<[u8; 3]>), PlotError>,
+) -> Result<Vec<PathBuf>, PlotError> {
+    std::fs::create_dir_all(out).map_err(|source| PlotError::CreateDir {
+        path: out.to_path_buf(),
+        source,
+    })?;
+    let mut written = Vec::new();
+    for &axis in axes {
+        let (w, h, pixels) = draw(axis)?;
+        let path = out.join(format!("{stem}-{}.png", axis.name()));
+        volux_envmap::io::save_png(&path, w, h, &pixels).map_err(|source| PlotError::Write {
+            path: path.clone(),
+            source,
+        })?;
+        written.push(path);
+    }
+    Ok(written)
+}
+
 /// Plots `run`'s `metrics.jsonl` into `out` (`curves-kimg.png`, and `curves-minutes.png`
 /// when the log carries the run clock); returns the files written.
 pub fn plot_run(run: &Path, out: &Path, title: &str) -> Result<Vec<PathBuf>, PlotError> {
@@ -435,21 +553,9 @@ pub fn plot_run(run: &Path, out: &Path, title: &str) -> Result<Vec<PathBuf>, Plo
     if metrics.has_minutes() {
         axes.push(XAxis::Minutes);
     }
-    std::fs::create_dir_all(out).map_err(|source| PlotError::CreateDir {
-        path: out.to_path_buf(),
-        source,
-    })?;
-    let mut written = Vec::new();
-    for axis in axes {
-        let (w, h, pixels) = render(title, &panels(&metrics, axis), axis)?;
-        let path = out.join(format!("curves-{}.png", axis.name()));
-        volux_envmap::io::save_png(&path, w, h, &pixels).map_err(|source| PlotError::Write {
-            path: path.clone(),
-            source,
-        })?;
-        written.push(path);
-    }
-    Ok(written)
+    write_plots(out, "curves", &axes, |axis| {
+        render(title, &panels(&metrics, axis), axis)
+    })
 }
 
 #[cfg(test)]

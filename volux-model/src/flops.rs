@@ -102,6 +102,22 @@ pub fn field(c: &NeiifConfig, batch: usize, points: usize, wants: FieldWants) ->
     total
 }
 
+/// The density-only passes that place the importance samples on `rays` rays of each of
+/// `batch` elements (none without `renderer.proposal`): the field up to its density head at
+/// `proposal + refine` points per ray, their segment weights and the inverse-transform
+/// draws.
+pub fn proposal(c: &GeneratorConfig, batch: usize, rays: usize) -> f64 {
+    let r = &c.renderer;
+    if r.proposal == 0 {
+        return 0.0;
+    }
+    let queried = r.density_only_samples();
+    let draws = r.refine + r.importance;
+    field(&c.neiif, batch, rays * queried, FieldWants::DENSITY)
+        + (batch * rays) as f64
+            * (queried as f64 * OPS_PER_SEGMENT + draws as f64 * OPS_PER_IMPORTANCE_SAMPLE)
+}
+
 /// Elementwise operations per compositing segment for its weight: the midpoint density and
 /// length, optical depth, exclusive cumulative sum, transmittance and alpha. An estimate.
 pub const OPS_PER_SEGMENT: f64 = 10.0;
@@ -187,8 +203,10 @@ pub fn relighting(c: &RelightingConfig, batch: usize, side: usize) -> f64 {
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct GeneratorFlops {
     pub mapping: f64,
-    /// Both passes of the NeIIF.
+    /// The NeIIF at the composited samples (both passes).
     pub field: f64,
+    /// The density-only proposal passes (forward only, no autodiff).
+    pub proposal: f64,
     /// An estimate (elementwise work).
     pub compositing: f64,
     pub upsampler: f64,
@@ -198,6 +216,11 @@ pub struct GeneratorFlops {
 
 impl GeneratorFlops {
     pub fn total(&self) -> f64 {
+        self.differentiated() + self.proposal
+    }
+
+    /// The work the backward pass goes through again: all but the proposal passes.
+    pub fn differentiated(&self) -> f64 {
         self.mapping + self.field + self.compositing + self.upsampler + self.relighting
     }
 }
@@ -242,6 +265,7 @@ pub fn generator(c: &GeneratorConfig, batch: usize, wants: GeneratorWants) -> Ge
             } else {
                 0.0
             },
+        proposal: proposal(c, batch, rays),
         compositing: compositing(batch, rays, r.stratified, r.importance, channels, lobes),
         upsampler: if upsample {
             upsampler(

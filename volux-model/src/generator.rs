@@ -53,6 +53,8 @@ pub enum GeneratorError {
         divisor: usize,
         resolution: usize,
     },
+    #[error("renderer samples")]
+    Samples(#[from] crate::volume_rendering::SamplesError),
     #[error("{what} needs lighting (light maps and yaw per batch element)")]
     NoLighting { what: &'static str },
     #[error("the field blends {lobes} specular lobes but {maps} light maps were given")]
@@ -116,6 +118,7 @@ impl GeneratorConfig {
                 neiif: self.neiif.w_dim,
             });
         }
+        self.renderer.check_samples()?;
         let levels = self.relighting_channels.len();
         let divisor = 1 << levels.saturating_sub(1);
         if levels == 0 || o % divisor != 0 {

@@ -2,8 +2,8 @@
 //!
 //! - Generator (section 3, appendix B): [`mapping`] network, [`positional_encoding`],
 //!   [`modulated`] layers, the [`neiif`] (its activation a [`fused_activation`]) (density, forward-mode normals, albedo, specular
-//!   weights, features), volume rendering ([`ray_sampling`] -> [`volume_rendering`] ->
-//!   [`ray_marching`], with the [`light_lookup`] and [`shading`] for `D` and `S`, per sample or,
+//!   weights, features), volume rendering ([`ray_sampling`], optionally placed by
+//!   density-only [`proposal`] passes, -> [`volume_rendering`] -> [`ray_marching`], with the [`light_lookup`] and [`shading`] for `D` and `S`, per sample or,
 //!   for the paper's surface-relighting ablation, per pixel), the [`upsampler`], the
 //!   [`relighting`] U-Net, all tied together in [`generator`]; [`presets`] sizes the
 //!   generator and the discriminators together (`small`, `paper`).
@@ -32,6 +32,7 @@ pub mod neiif;
 pub mod positional_encoding;
 pub mod presets;
 pub mod profile;
+pub mod proposal;
 pub mod ray_marching;
 pub mod ray_sampling;
 pub mod relighting;

@@ -27,8 +27,10 @@ use crate::presets::DiscriminatorRole;
 pub enum Phase {
     /// `z -> w`.
     Mapping,
-    /// The NeIIF at every sample (both passes), forward-mode tangents included.
+    /// The NeIIF at every composited sample (both passes), forward-mode tangents included.
     Field,
+    /// The density-only passes that place the importance samples (`crate::proposal`).
+    Proposal,
     /// Rays, sampling, compositing weights and accumulation, light-map look-ups, images.
     Compositing,
     /// The upsampler (`A_hi`, `F_hi`).
@@ -56,6 +58,7 @@ impl Phase {
         match self {
             Phase::Mapping => "mapping",
             Phase::Field => "NeIIF field + tangents",
+            Phase::Proposal => "density-only proposal",
             Phase::Compositing => "compositing + light look-ups",
             Phase::Upsampler => "upsampler",
             Phase::Relighting => "relighting net",

@@ -166,7 +166,7 @@ pub fn importance_samples(
 ) -> Tensor<2> {
     let [rays, samples] = t.dims();
     let device = t.device();
-    let (t, weights) = (t.detach(), weights.detach());
+    let t = t.detach();
     // Bin edges [rays, samples + 1].
     let near = Tensor::<2>::full([rays, 1], config.near as f32, &device);
     let far = Tensor::<2>::full([rays, 1], config.far as f32, &device);
@@ -177,7 +177,44 @@ pub fn importance_samples(
     } else {
         Tensor::cat(vec![near, far], 1)
     };
-    let widths = edges.clone().narrow(1, 1, samples) - edges.clone().narrow(1, 0, samples);
+    draw_from_bins(config, edges, weights, count, jitter)
+}
+
+/// Importance samples `[rays, count]` from bins that are the segments between sorted depths
+/// `t` (`[rays, samples]`): the bins run `near..t_0, t_0..t_1, ..., t_last..far` and
+/// `weights` (`[rays, samples + 1]`) are theirs. A surface crossed between two samples puts
+/// its weight on the segment that holds it, so the draws bracket the surface; the midpoint
+/// bins of [`importance_samples`] can miss it by half a bin. Sorted, no gradient.
+pub fn segment_importance_samples(
+    config: &CameraConfig,
+    t: Tensor<2>,
+    weights: Tensor<2>,
+    count: usize,
+    jitter: bool,
+) -> Tensor<2> {
+    let [rays, _] = t.dims();
+    let device = t.device();
+    let near = Tensor::<2>::full([rays, 1], config.near as f32, &device);
+    let far = Tensor::<2>::full([rays, 1], config.far as f32, &device);
+    let edges = Tensor::cat(vec![near, t.detach(), far], 1);
+    draw_from_bins(config, edges, weights, count, jitter)
+}
+
+/// `count` sorted depths drawn by inverse transform of stratified uniforms from the
+/// piecewise-constant density on bins `edges` (`[rays, bins + 1]`, from `near` to `far`)
+/// whose masses are `weights` (`[rays, bins]`, non-negative, any scale), mixed with
+/// [`IMPORTANCE_UNIFORM_MIX`] of the uniform density.
+fn draw_from_bins(
+    config: &CameraConfig,
+    edges: Tensor<2>,
+    weights: Tensor<2>,
+    count: usize,
+    jitter: bool,
+) -> Tensor<2> {
+    let [rays, bins] = weights.dims();
+    let device = edges.device();
+    let weights = weights.detach();
+    let widths = edges.clone().narrow(1, 1, bins) - edges.clone().narrow(1, 0, bins);
     // Probability of each bin: the weights, mixed with a little of the uniform density.
     let total = weights.clone().sum_dim(1).add_scalar(1e-12);
     let length = (config.far - config.near) as f32;
@@ -200,18 +237,18 @@ pub fn importance_samples(
     } else {
         Tensor::<2>::full([rays, count], 0.5, &device)
     };
-    let last = cdf.clone().narrow(1, samples, 1); // ~1, up to rounding
+    let last = cdf.clone().narrow(1, bins, 1); // ~1, up to rounding
     let u = (starts + offset.div_scalar(count as f32)) * last;
     // Bin index: how many inner cdf values lie at or below u.
-    let index = if samples > 1 {
-        let inner = cdf.clone().narrow(1, 1, samples - 1);
+    let index = if bins > 1 {
+        let inner = cdf.clone().narrow(1, 1, bins - 1);
         inner
-            .reshape([rays, 1, samples - 1])
-            .expand([rays, count, samples - 1])
+            .reshape([rays, 1, bins - 1])
+            .expand([rays, count, bins - 1])
             .lower_equal(
                 u.clone()
                     .reshape([rays, count, 1])
-                    .expand([rays, count, samples - 1]),
+                    .expand([rays, count, bins - 1]),
             )
             .int()
             .sum_dim(2)
@@ -298,6 +335,25 @@ mod tests {
             let want = 2.25 + (i as f32 + 0.5) / 64.0 * 1.05;
             assert!((f - want).abs() < 1e-3, "{i}: {f} vs {want}");
         }
+    }
+
+    #[test]
+    fn segment_importance_samples_fall_between_the_samples_that_bound_the_weight() {
+        let device = Device::flex();
+        let cfg = CameraConfig::new();
+        let (t, _) = stratified_samples(&cfg, 1, 8, false, &device);
+        // 9 segments: near..t0, t0..t1, ..., t7..far; all the weight on t2..t3.
+        let mut w = vec![0.0f32; 9];
+        w[3] = 0.7;
+        let w = Tensor::<1>::from_floats(w.as_slice(), &device).reshape([1, 9]);
+        let fine = to_f32_vec(segment_importance_samples(&cfg, t.clone(), w, 32, false));
+        let tv = to_f32_vec(t);
+        let inside = fine.iter().filter(|f| (tv[2]..=tv[3]).contains(*f)).count();
+        assert!(
+            inside >= 31,
+            "{inside} of 32 in the heavy segment: {fine:?}"
+        );
+        assert!(fine.windows(2).all(|p| p[0] <= p[1]), "sorted");
     }
 
     #[test]

@@ -3,7 +3,9 @@
 //! relative RMS error of the accumulated albedo,
 //! normals, diffuse and specular maps against a 1024-sample stratified reference, and the wall
 //! time of the render, on random NeIIFs (fog-like, as a generator is at initialisation) and on
-//! soft spheres (hard surfaces, the stiff case). `volux model sampling-report` prints it;
+//! soft spheres (hard surfaces, the stiff case). Beside them, layouts whose importance samples
+//! are placed by density-only [`crate::proposal`] passes, so that their cost can be set
+//! against the plain counts' in the same sitting. `volux model sampling-report` prints it;
 //! docs/model.md records it.
 
 use std::time::Instant;
@@ -31,7 +33,78 @@ pub struct SamplingSettings {
     pub random_fields: usize,
     /// Rays per render call (bounds memory).
     pub chunk: usize,
+    /// Layouts with density-only proposal passes to measure (midpoint rule).
+    pub layouts: Vec<ProposalLayout>,
 }
+
+/// Samples per ray of a renderer whose importance samples are placed by proposal passes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ProposalLayout {
+    /// Full stratified samples, composited with the importance ones (may be 0).
+    pub stratified: usize,
+    /// Density-only stratified samples.
+    pub proposal: usize,
+    /// Density-only samples drawn from the proposal's weights.
+    pub refine: usize,
+    /// Full samples drawn from the density-only samples' weights.
+    pub importance: usize,
+}
+
+impl ProposalLayout {
+    /// The renderer's configuration for this layout (midpoint rule).
+    pub fn renderer(&self) -> RendererConfig {
+        RendererConfig::new()
+            .with_stratified(self.stratified)
+            .with_proposal(self.proposal)
+            .with_refine(self.refine)
+            .with_importance(self.importance)
+    }
+}
+
+impl std::str::FromStr for ProposalLayout {
+    type Err = String;
+
+    /// `S:P:R:I`: stratified, proposal, refine and importance samples per ray.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let parts: Vec<usize> = s
+            .split(':')
+            .map(|p| p.trim().parse::<usize>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| format!("layout {s:?}: {e} (expected S:P:R:I, e.g. 0:32:16:12)"))?;
+        let [stratified, proposal, refine, importance] = parts[..] else {
+            return Err(format!(
+                "layout {s:?}: expected four counts S:P:R:I (stratified, proposal, refine, importance)"
+            ));
+        };
+        let layout = Self {
+            stratified,
+            proposal,
+            refine,
+            importance,
+        };
+        if proposal == 0 {
+            return Err(format!(
+                "layout {s:?}: the proposal count P must be at least 1"
+            ));
+        }
+        layout
+            .renderer()
+            .check_samples()
+            .map_err(|e| format!("layout {s:?}: {e}"))?;
+        if [stratified, proposal, refine, importance]
+            .iter()
+            .any(|&n| n > MAX_LAYOUT_SAMPLES)
+        {
+            return Err(format!(
+                "layout {s:?}: at most {MAX_LAYOUT_SAMPLES} samples of each kind"
+            ));
+        }
+        Ok(layout)
+    }
+}
+
+/// The most samples of one kind a report layout may ask for.
+pub const MAX_LAYOUT_SAMPLES: usize = 1024;
 
 impl Default for SamplingSettings {
     fn default() -> Self {
@@ -41,9 +114,22 @@ impl Default for SamplingSettings {
             reference: 1024,
             random_fields: 2,
             chunk: 256,
+            layouts: DEFAULT_LAYOUTS
+                .iter()
+                .map(|l| l.parse().expect("valid default layout"))
+                .collect(),
         }
     }
 }
+
+/// The proposal layouts the report measures by default, `S:P:R:I`.
+pub const DEFAULT_LAYOUTS: [&str; 5] = [
+    "0:16:0:13",
+    "0:16:8:12",
+    "0:16:4:14",
+    "0:32:16:12",
+    "8:16:0:8",
+];
 
 /// One line of the report.
 #[derive(Clone, Debug)]
@@ -51,6 +137,9 @@ pub struct SamplingRow {
     pub scene: String,
     pub stratified: usize,
     pub importance: usize,
+    /// Density-only proposal and refine samples (0, 0: EG3D's two passes).
+    pub proposal: usize,
+    pub refine: usize,
     /// Midpoint rule (else the left rule).
     pub midpoint: bool,
     /// Wall time of one render of the image (forward only), milliseconds.
@@ -132,25 +221,30 @@ fn measure_scene(
         settings.chunk,
         device,
     );
-    for &count in &settings.counts {
-        for (importance, midpoint) in [(0, true), (count, false), (count, true)] {
-            let cfg = RendererConfig::new()
+    let plain = settings.counts.iter().flat_map(|&count| {
+        [(0, true), (count, false), (count, true)].map(|(importance, midpoint)| {
+            RendererConfig::new()
                 .with_stratified(count)
                 .with_importance(importance)
-                .with_midpoint(midpoint);
-            let start = Instant::now();
-            let got = render_chunked(&cfg, field, settings.side, lighting, settings.chunk, device);
-            let ms = start.elapsed().as_secs_f64() * 1e3;
-            let error = std::array::from_fn(|k| relative_rms(&got.0[k], &reference.0[k]));
-            rows.push(SamplingRow {
-                scene: scene.to_string(),
-                stratified: count,
-                importance,
-                midpoint,
-                ms,
-                error,
-            });
-        }
+                .with_midpoint(midpoint)
+        })
+    });
+    let proposed = settings.layouts.iter().map(ProposalLayout::renderer);
+    for cfg in plain.chain(proposed) {
+        let start = Instant::now();
+        let got = render_chunked(&cfg, field, settings.side, lighting, settings.chunk, device);
+        let ms = start.elapsed().as_secs_f64() * 1e3;
+        let error = std::array::from_fn(|k| relative_rms(&got.0[k], &reference.0[k]));
+        rows.push(SamplingRow {
+            scene: scene.to_string(),
+            stratified: cfg.stratified,
+            importance: cfg.importance,
+            proposal: cfg.proposal,
+            refine: cfg.refine,
+            midpoint: cfg.midpoint,
+            ms,
+            error,
+        });
     }
 }
 
@@ -190,13 +284,19 @@ pub fn run(settings: &SamplingSettings, lighting: &Lighting, device: &Device) ->
 /// The report as a Markdown table.
 pub fn to_markdown(rows: &[SamplingRow]) -> String {
     let mut s = String::from(
-        "| scene | stratified | importance | rule | ms | A rel RMS | N rel RMS | D rel RMS | S rel RMS |\n|---|---|---|---|---|---|---|---|---|\n",
+        "| scene | stratified | proposal + refine | importance | rule | ms | A rel RMS | N rel RMS | D rel RMS | S rel RMS |\n|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
+        let proposal = if r.proposal > 0 {
+            format!("{} + {}", r.proposal, r.refine)
+        } else {
+            "-".to_string()
+        };
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {:.0} | {:.2e} | {:.2e} | {:.2e} | {:.2e} |\n",
+            "| {} | {} | {} | {} | {} | {:.0} | {:.2e} | {:.2e} | {:.2e} | {:.2e} |\n",
             r.scene,
             r.stratified,
+            proposal,
             r.importance,
             if r.midpoint { "midpoint" } else { "left" },
             r.ms,
@@ -240,10 +340,11 @@ mod tests {
             reference: 256,
             random_fields: 1,
             chunk: 64,
+            layouts: vec!["0:16:8:4".parse().unwrap()],
         };
         let rows = run(&settings, &lighting, &device);
-        assert_eq!(rows.len(), 3 * 6);
-        for scene in rows.chunks(6) {
+        assert_eq!(rows.len(), 3 * 7);
+        for scene in rows.chunks(7) {
             // [4, 4+4 left, 4+4 mid, 32, ...]: 32 stratified beats 4 on every map that 4 gets
             // wrong (a hard sphere's constant albedo is exact, to rounding, with any count).
             for k in (0..4).filter(|&k| scene[0].error[k] > 1e-5) {
@@ -256,6 +357,38 @@ mod tests {
                 );
             }
         }
+        // On the hard sphere, 4 full samples placed by density-only passes get the normals
+        // and the diffuse shading better than 4 + 4 full samples do.
+        let hard = &rows[14..21];
+        assert_eq!((hard[6].proposal, hard[6].importance), (16, 4));
+        for k in [1, 2] {
+            assert!(
+                hard[6].error[k] < hard[2].error[k],
+                "{:?} vs {:?}",
+                hard[6],
+                hard[2]
+            );
+        }
         assert!(to_markdown(&rows).lines().count() == 2 + rows.len());
+    }
+
+    #[test]
+    fn layouts_parse_and_bad_ones_are_named() {
+        let l: ProposalLayout = "4:32:16:8".parse().unwrap();
+        assert_eq!(
+            (l.stratified, l.proposal, l.refine, l.importance),
+            (4, 32, 16, 8)
+        );
+        for (bad, says) in [
+            ("32:16:8", "four counts"),
+            ("0:x:0:8", "\"0:x:0:8\""),
+            ("0:0:0:8", "proposal count"),
+            ("0:32:0:0", "stratified and importance are both 0"),
+            ("4:32:0:0", "importance = 0"),
+            ("0:32:0:5000", "at most 1024"),
+        ] {
+            let e = bad.parse::<ProposalLayout>().unwrap_err();
+            assert!(e.contains(says), "{bad}: {e}");
+        }
     }
 }

@@ -5,18 +5,22 @@
 //! opacity. [`Shading::Surface`] shades once per pixel instead, at the accumulated normal (the
 //! paper's ablation; [`crate::shading`]).
 //!
-//! Sampling is EG3D's: stratified samples, then importance samples drawn from the stratified
-//! pass's weights; both passes are evaluated by the field and composited together, sorted by
-//! depth. What is not asked for is not computed: no light-map look-ups without shading, no
+//! Sampling is EG3D's by default: stratified samples, then importance samples drawn from the
+//! stratified pass's weights; both passes are evaluated by the field and composited together,
+//! sorted by depth. With `proposal > 0` the importance samples are placed by density-only
+//! passes instead ([`crate::proposal`]), whose samples join the compositing weights and lend
+//! them to the nearest full sample's values. What is not asked for is not computed: no light-map look-ups without shading, no
 //! tangent propagation without normals or shading, no field head without albedo, features or
 //! shading. Like EG3D's renderer this file knows the field only through [`Field`].
 
 use burn::config::Config;
-use burn::tensor::{Int, Tensor};
+use burn::module::Module;
+use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 
 use crate::light_lookup::LightMapBatch;
 use crate::neiif::{FieldOutput, FieldWants, Neiif};
 use crate::profile::{self, Phase};
+use crate::proposal;
 use crate::ray_marching;
 use crate::ray_sampling::{CameraConfig, importance_samples, segment_lengths, stratified_samples};
 pub use crate::shading::Shading;
@@ -26,6 +30,14 @@ use crate::shading::{normalize_accumulated, shade};
 /// `[batch, points, 3]`.
 pub trait Field {
     fn query(&self, points: Tensor<3>, wants: FieldWants) -> FieldOutput;
+
+    /// Densities alone, `[batch, points]`, for placing samples: no normals, no appearance
+    /// and no autodiff (the result is a constant to any gradient; [`crate::proposal`]).
+    fn density(&self, points: Tensor<3>) -> Tensor<2> {
+        self.query(points.inner(), FieldWants::DENSITY)
+            .sigma
+            .inner()
+    }
 }
 
 /// A NeIIF with the latents of a batch.
@@ -41,6 +53,15 @@ impl Field for LatentField<'_> {
             self.field.forward(points, self.w.clone(), wants)
         })
     }
+
+    /// Layers 1 to the density layer and the density head, on the field's parameters
+    /// without autodiff: nothing of it enters the graph.
+    fn density(&self, points: Tensor<3>) -> Tensor<2> {
+        self.field
+            .valid()
+            .forward(points.inner(), self.w.clone().inner(), FieldWants::DENSITY)
+            .sigma
+    }
 }
 
 /// Configuration of the renderer.
@@ -55,6 +76,17 @@ pub struct RendererConfig {
     /// Importance samples per ray (0: none, and no second pass).
     #[config(default = 24)]
     pub importance: usize,
+    /// Density-only samples per ray that place the importance samples
+    /// ([`crate::proposal`]); their densities join the compositing weights, their weights go
+    /// to the nearest full sample's values. 0: EG3D's scheme, the importance samples are
+    /// drawn from the stratified samples' weights. Needs `importance > 0`.
+    #[config(default = 0)]
+    pub proposal: usize,
+    /// Density-only samples drawn from the proposal samples' weights and merged with them
+    /// before the importance samples are drawn (a second level that narrows in on surfaces).
+    /// Needs `proposal > 0`.
+    #[config(default = 0)]
+    pub refine: usize,
     /// Quadrature of the compositing integral: `true` is EG3D's midpoint rule (each segment
     /// between two samples carries the mean of their values), `false` NeRF's left rule (each
     /// sample's values hold up to the next sample, the last up to `far`). The midpoint rule is
@@ -65,6 +97,50 @@ pub struct RendererConfig {
     /// per pixel at the accumulated normal (the paper's "surface relighting" ablation).
     #[config(default = "Shading::Volume")]
     pub shading: Shading,
+}
+
+/// A sample layout the renderer cannot use.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum SamplesError {
+    #[error("no samples to composite: stratified and importance are both 0")]
+    Nothing,
+    #[error("importance = {importance} without stratified or proposal samples to draw them from")]
+    ImportanceUnplaced { importance: usize },
+    #[error("proposal = {proposal} places importance samples, but importance = 0")]
+    ProposalUnused { proposal: usize },
+    #[error("refine = {refine} needs proposal samples to refine (proposal = 0)")]
+    RefineWithoutProposal { refine: usize },
+}
+
+impl RendererConfig {
+    /// Checks that the sample counts make a renderer: something to composite, and every
+    /// pass that places samples used by one that is composited.
+    pub fn check_samples(&self) -> Result<(), SamplesError> {
+        if self.stratified == 0 && self.importance == 0 {
+            return Err(SamplesError::Nothing);
+        }
+        if self.importance > 0 && self.stratified == 0 && self.proposal == 0 {
+            return Err(SamplesError::ImportanceUnplaced {
+                importance: self.importance,
+            });
+        }
+        if self.proposal > 0 && self.importance == 0 {
+            return Err(SamplesError::ProposalUnused {
+                proposal: self.proposal,
+            });
+        }
+        if self.refine > 0 && self.proposal == 0 {
+            return Err(SamplesError::RefineWithoutProposal {
+                refine: self.refine,
+            });
+        }
+        Ok(())
+    }
+
+    /// Density-only field queries per ray (placing samples only).
+    pub fn density_only_samples(&self) -> usize {
+        self.proposal + self.refine
+    }
 }
 
 /// Light maps for shading: `maps[i]` holds exponent `n_i` for every batch element, the first
@@ -242,60 +318,96 @@ pub fn render(
         !wants.shading || lighting.is_some(),
         "shading needs lighting"
     );
+    if let Err(e) = config.check_samples() {
+        panic!("{e}");
+    }
     let field_wants = wants.field();
-    let (t, _) = stratified_samples(&config.camera, b * r, config.stratified, jitter, &device);
-    let coarse = evaluate(field, &origins, &dirs, t, field_wants);
-    let samples = if config.importance > 0 {
-        let w = ray_marching::weights(
-            coarse.sigma.clone(),
-            segment_lengths(coarse.t.clone(), config.camera.far),
-        );
-        let t = importance_samples(
-            &config.camera,
-            coarse.t.clone(),
-            w,
-            config.importance,
-            jitter,
-        );
-        let fine = evaluate(field, &origins, &dirs, t, field_wants);
-        merge(coarse, fine)
-    } else {
-        coarse
+    let coarse = (config.stratified > 0).then(|| {
+        let (t, _) = stratified_samples(&config.camera, b * r, config.stratified, jitter, &device);
+        evaluate(field, &origins, &dirs, t, field_wants)
+    });
+    let mut proposed = None;
+    let fine = (config.importance > 0).then(|| {
+        let t = match &coarse {
+            Some(coarse) if config.proposal == 0 => {
+                let w = ray_marching::weights(
+                    coarse.sigma.clone(),
+                    segment_lengths(coarse.t.clone(), config.camera.far),
+                );
+                importance_samples(
+                    &config.camera,
+                    coarse.t.clone(),
+                    w,
+                    config.importance,
+                    jitter,
+                )
+            }
+            _ => {
+                let p = proposal::place(config, field, &origins, &dirs, jitter);
+                let t = p.importance.clone();
+                proposed = Some(p);
+                t
+            }
+        };
+        evaluate(field, &origins, &dirs, t, field_wants)
+    });
+    let samples = match (coarse, fine) {
+        (Some(coarse), Some(fine)) => merge(coarse, fine),
+        (Some(only), None) | (None, Some(only)) => only,
+        (None, None) => unreachable!("check_samples asks for samples to composite"),
     };
     let s = samples.t.dims()[1];
-    // Midpoint rule: segment i runs from sample i to sample i + 1 and carries the mean of
-    // their values. Left rule: it runs from sample i to the next (the last one to `far`) and
-    // carries sample i's values.
-    let midpoint = config.midpoint && s > 1;
-    let segments3 = |x: Tensor<3>| -> Tensor<3> {
-        if midpoint {
-            (x.clone().narrow(1, 0, s - 1) + x.narrow(1, 1, s - 1)).mul_scalar(0.5)
-        } else {
-            x
+    // The depths and densities the quadrature runs over: the composited samples, joined by
+    // the density-only ones when a proposal placed them (`owner`: the composited sample whose
+    // values each entry carries).
+    let (t_all, sigma_all, owner) = match proposed {
+        Some(p) => {
+            let (t, order) = Tensor::cat(vec![samples.t.clone(), p.t], 1).sort_with_indices(1);
+            let sigma = Tensor::cat(vec![samples.sigma.clone(), p.sigma], 1).gather(1, order);
+            let owner = proposal::nearest(t.clone(), samples.t.clone());
+            (t, sigma, Some(owner))
         }
+        None => (samples.t.clone(), samples.sigma.clone(), None),
     };
-    let (sigma, delta) = if midpoint {
-        let t = samples.t.clone();
-        (
-            (samples.sigma.clone().narrow(1, 0, s - 1) + samples.sigma.narrow(1, 1, s - 1))
-                .mul_scalar(0.5),
-            t.clone().narrow(1, 1, s - 1) - t.narrow(1, 0, s - 1),
-        )
+    let n = t_all.dims()[1];
+    // Midpoint rule: segment i runs from entry i to entry i + 1 and carries the mean of their
+    // values, so each entry carries half of the weight of each segment it bounds. Left rule:
+    // segment i runs from entry i to the next (the last one to `far`) and carries entry i's
+    // values. Either way the accumulation is `sum_i mass_i value_i` over the entries.
+    let (weights, mass) = if config.midpoint && n > 1 {
+        let delta = t_all.clone().narrow(1, 1, n - 1) - t_all.clone().narrow(1, 0, n - 1);
+        let sigma =
+            (sigma_all.clone().narrow(1, 0, n - 1) + sigma_all.narrow(1, 1, n - 1)).mul_scalar(0.5);
+        let w = ray_marching::weights(sigma, delta);
+        let zero = Tensor::<2>::zeros([b * r, 1], &device);
+        let mass = (Tensor::cat(vec![zero.clone(), w.clone()], 1)
+            + Tensor::cat(vec![w.clone(), zero], 1))
+        .mul_scalar(0.5);
+        (w, mass)
     } else {
-        (
-            samples.sigma,
-            segment_lengths(samples.t.clone(), config.camera.far),
-        )
+        let w = ray_marching::weights(sigma_all, segment_lengths(t_all.clone(), config.camera.far));
+        (w.clone(), w)
     };
-    let weights = ray_marching::weights(sigma, delta);
+    // Each composited sample's share: its own mass and that of the density-only entries it
+    // owns.
+    let share = match owner {
+        Some(owner) => Tensor::<2>::zeros([b * r, s], &device).scatter(
+            1,
+            owner,
+            mass.clone(),
+            IndexingUpdateOp::Add,
+        ),
+        None => mass.clone(),
+    };
     let to_image = |x: Tensor<2>| -> Tensor<3> {
         let c = x.dims()[1];
         x.reshape([b, r, c])
     };
-    let acc = |x: Tensor<3>| to_image(ray_marching::accumulate(weights.clone(), segments3(x)));
-    let opacity = ray_marching::opacity(weights.clone()).reshape([b, r]);
+    let acc = |x: Tensor<3>| to_image(ray_marching::accumulate(share.clone(), x));
+    let opacity = ray_marching::opacity(weights).reshape([b, r]);
     let depth = wants.depth.then(|| {
-        let expected = acc(samples.t.clone().reshape([b * r, s, 1])).reshape([b, r]);
+        let expected = ray_marching::accumulate(mass.clone(), t_all.clone().reshape([b * r, n, 1]))
+            .reshape([b, r]);
         expected
             + opacity
                 .clone()

@@ -262,6 +262,9 @@ fn phase_flops(
         (Phase::Upsampler, g.upsampler, Exact),
         (Phase::Relighting, g.relighting, Exact),
     ];
+    if config.generator().renderer.proposal > 0 {
+        out.push((Phase::Proposal, g.proposal, Estimate));
+    }
     let mut d_forward = 0.0;
     let mut r1 = 0.0;
     for &role in &roles {
@@ -273,7 +276,7 @@ fn phase_flops(
     // Through the frozen discriminators only the input gradient is computed (1x forward).
     out.push((
         Phase::GeneratorBackward,
-        BACKWARD_FACTOR * g.total() + d_forward,
+        BACKWARD_FACTOR * g.differentiated() + d_forward,
         Estimate,
     ));
     out.push((Phase::GeneratorUpdate, flops::adam(g_params), Estimate));

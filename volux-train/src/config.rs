@@ -24,6 +24,13 @@ pub enum ConfigError {
     File { path: PathBuf, message: String },
 }
 
+/// The largest batch a config may ask for (the paper trains at 24; a batch of 10^12 would
+/// otherwise hang allocating before any output).
+pub const MAX_BATCH: usize = 1024;
+
+/// The most samples of any one kind per ray a config may ask for.
+pub const MAX_SAMPLES_PER_RAY: usize = 1024;
+
 /// `[model]`: a preset size, optionally with fewer or more samples per ray.
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
@@ -36,6 +43,14 @@ pub struct ModelConfig {
     /// Importance samples per ray (the preset's if absent).
     #[serde(default)]
     pub importance: Option<usize>,
+    /// Density-only samples per ray that place the importance samples and are not
+    /// composited (0 or absent: EG3D's scheme, importance drawn from the stratified samples).
+    #[serde(default)]
+    pub proposal: Option<usize>,
+    /// Density-only samples drawn from the proposal's weights before the importance samples
+    /// are (0 or absent: none). Needs `proposal`.
+    #[serde(default)]
+    pub refine: Option<usize>,
     /// Sharpness of the NeIIF's sphere prior on the density logit (0 or absent: none).
     #[serde(default)]
     pub sphere_prior: Option<f64>,
@@ -92,6 +107,25 @@ impl ModelConfig {
         if let Some(n) = self.importance {
             g.renderer.importance = n;
         }
+        if let Some(n) = self.proposal {
+            g.renderer.proposal = n;
+        }
+        if let Some(n) = self.refine {
+            g.renderer.refine = n;
+        }
+        let r = &g.renderer;
+        for (key, n) in [
+            ("stratified", r.stratified),
+            ("importance", r.importance),
+            ("proposal", r.proposal),
+            ("refine", r.refine),
+        ] {
+            if n > MAX_SAMPLES_PER_RAY {
+                return Err(format!(
+                    "model.{key} = {n} exceeds {MAX_SAMPLES_PER_RAY} samples per ray"
+                ));
+            }
+        }
         if let Some(s) = self.sphere_prior {
             if !(s.is_finite() && s >= 0.0) {
                 return Err(format!("model.sphere_prior = {s} must be finite and >= 0"));
@@ -113,13 +147,21 @@ impl ModelConfig {
         if let Some(kind) = self.shading {
             g.renderer.shading = kind.into();
         }
-        if g.renderer.stratified < 2 {
+        // Compositing needs two samples per ray: stratified ones, or importance ones placed
+        // by a proposal.
+        let composited = if g.renderer.proposal > 0 {
+            ("importance", g.renderer.importance)
+        } else {
+            ("stratified", g.renderer.stratified)
+        };
+        if composited.1 < 2 {
             return Err(format!(
-                "model.stratified = {} must be at least 2",
-                g.renderer.stratified
+                "model.{} = {} must be at least 2",
+                composited.0, composited.1
             ));
         }
-        g.validate().map_err(|e| format!("[model]: {e}"))?;
+        g.validate()
+            .map_err(|e| format!("[model]: {}", volux_envmap::error::chain(&e)))?;
         Ok(g)
     }
 
@@ -307,8 +349,11 @@ impl TrainConfig {
     fn validate(&self) -> Result<(), String> {
         let g = self.model.generator()?;
         let t = &self.train;
-        if t.batch == 0 {
-            return Err("train.batch must be at least 1".into());
+        if !(1..=MAX_BATCH).contains(&t.batch) {
+            return Err(format!(
+                "train.batch = {} must be in 1..={MAX_BATCH}",
+                t.batch
+            ));
         }
         for role in DiscriminatorRole::ALL {
             let group = self.model.discriminator(role)?.mbstd_group;
@@ -438,6 +483,25 @@ volume_resolution = 32
         assert_eq!((g.renderer.stratified, g.renderer.importance), (6, 3));
         assert_eq!((g.neiif.sphere_prior, g.neiif.sphere_radius), (10.0, 0.35));
         assert_eq!(g.neiif.frequencies, 4);
+        assert_eq!(
+            (g.renderer.proposal, g.renderer.refine),
+            (0, 0),
+            "EG3D's unless asked"
+        );
+        let text = TINY.replace(
+            "\"small\"",
+            "\"small\"\nstratified = 0\nproposal = 32\nrefine = 16\nimportance = 12",
+        );
+        let c = load(&text).unwrap();
+        let r = c.generator().renderer;
+        assert_eq!(
+            (r.stratified, r.proposal, r.refine, r.importance),
+            (0, 32, 16, 12)
+        );
+        assert!(
+            c.shapes().contains("proposal = 32"),
+            "a resume must match it"
+        );
         assert_eq!(g.renderer.shading, Shading::Volume, "volume unless asked");
         for (key, want) in [("volume", Shading::Volume), ("surface", Shading::Surface)] {
             let text = TINY.replace("\"small\"", &format!("\"small\"\nshading = \"{key}\""));
@@ -466,6 +530,10 @@ volume_resolution = 32
             (TINY.replace("batch = 4", "batch = 6"), "train.batch = 6"),
             (TINY.replace("batch = 4", "lr_g = -1.0"), "train.lr_g"),
             (TINY.replace("batch = 4", "beta2 = 1.0"), "train.beta2"),
+            (
+                TINY.replace("batch = 4", "batch = 1000000000000"),
+                "train.batch = 1000000000000 must be in 1..=1024",
+            ),
             (TINY.replace("\"small\"", "\"huge\""), "model.preset"),
             (
                 TINY.replace("\"small\"", "\"small\"\nsphere_radius = 2.0"),
@@ -495,6 +563,26 @@ volume_resolution = 32
                 "identity",
             ),
             (TINY.replace("[model]\npreset = \"small\"", ""), "model"),
+            (
+                TINY.replace("\"small\"", "\"small\"\nrefine = 8"),
+                "refine = 8",
+            ),
+            (
+                TINY.replace("\"small\"", "\"small\"\nproposal = 32\nimportance = 0"),
+                "importance = 0",
+            ),
+            (
+                TINY.replace("\"small\"", "\"small\"\nproposal = 32\nimportance = 1"),
+                "model.importance = 1",
+            ),
+            (
+                TINY.replace("\"small\"", "\"small\"\nproposal = 100000"),
+                "model.proposal = 100000",
+            ),
+            (
+                TINY.replace("\"small\"", "\"small\"\nstratified = 0"),
+                "model.stratified = 0",
+            ),
         ];
         for (text, key) in cases {
             let e = load(&text).expect_err(key);

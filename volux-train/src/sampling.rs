@@ -132,9 +132,9 @@ pub fn render_layers(
 /// Why samples cannot be rendered.
 #[derive(Debug, thiserror::Error)]
 pub enum SampleError {
-    #[error("lighting: {0}")]
+    #[error("lighting")]
     Lighting(#[from] LightingTensorError),
-    #[error("generator: {0}")]
+    #[error("generator")]
     Model(#[from] GeneratorError),
 }
 

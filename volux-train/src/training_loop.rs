@@ -51,11 +51,11 @@ pub enum TrainError {
     LoaderStopped,
     #[error("lighting a batch")]
     Lighting(#[from] LightingTensorError),
-    #[error("generator: {0}")]
+    #[error("generator")]
     Model(#[from] GeneratorError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    #[error("sample grid: {0}")]
+    #[error("sample grid")]
     Sample(#[from] sampling::SampleError),
     #[error("evaluating the EMA generator at {kimg:.2} kimg")]
     Eval {

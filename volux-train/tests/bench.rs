@@ -40,10 +40,27 @@ procedural_height = 16
 
 #[test]
 fn bench_times_and_counts_every_active_phase_of_both_stages() {
+    for proposal in [false, true] {
+        phases_of_both_stages(proposal);
+    }
+}
+
+/// The bench of [`TINY`], or of TINY with its importance samples placed by density-only
+/// proposal passes (then a "density-only proposal" row is timed and counted too).
+fn phases_of_both_stages(proposal: bool) {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("tiny.toml");
-    std::fs::write(&path, TINY).unwrap();
+    let text = if proposal {
+        TINY.replace(
+            "stratified = 4\nimportance = 2",
+            "stratified = 0\nproposal = 6\nrefine = 2\nimportance = 3",
+        )
+    } else {
+        TINY.to_string()
+    };
+    std::fs::write(&path, text).unwrap();
     let config = TrainConfig::load(&path).unwrap();
+    assert_eq!(config.generator().renderer.proposal > 0, proposal);
     let options = |stage| BenchOptions {
         stage,
         steps: 2,
@@ -76,11 +93,16 @@ fn bench_times_and_counts_every_active_phase_of_both_stages() {
         assert_eq!(report.skipped, 0);
         assert!(report.gemm_peak.is_finite() && report.gemm_peak > 0.0);
         assert!(report.step_median_s > 0.0 && report.images_per_s() > 0.0);
-        let (present, absent): (Vec<Phase>, Vec<Phase>) = if stage == Stage::One {
+        let (mut present, mut absent): (Vec<Phase>, Vec<Phase>) = if stage == Stage::One {
             (common.to_vec(), stage2_only.to_vec())
         } else {
             (common.iter().chain(&stage2_only).copied().collect(), vec![])
         };
+        if proposal {
+            present.push(Phase::Proposal);
+        } else {
+            absent.push(Phase::Proposal);
+        }
         for phase in present {
             let row = report
                 .row(phase)

@@ -150,7 +150,7 @@ pub enum HdriError {
         "the HDRI collection is empty: enable `builtin`, ask for `skies`, `overcast` or `studios`, or add `folders`"
     )]
     EmptyCollection,
-    #[error("{}: cannot read HDRI folder: {source}", path.display())]
+    #[error("{}: cannot read HDRI folder", path.display())]
     ReadFolder {
         path: PathBuf,
         #[source]
@@ -158,7 +158,7 @@ pub enum HdriError {
     },
     #[error("{}: HDRI folder has no .exr or .hdr files", path.display())]
     EmptyFolder { path: PathBuf },
-    #[error("{}: cannot read HDRI: {source}", path.display())]
+    #[error("{}: cannot read HDRI", path.display())]
     ReadFile {
         path: PathBuf,
         #[source]

@@ -154,3 +154,48 @@ fn a_run_folder_gets_both_plots() {
     let written = plot_run(dir.path(), &dir.path().join("p"), "run").unwrap();
     assert_eq!(written.len(), 1);
 }
+
+#[test]
+fn runs_compare_score_by_score_with_the_first_runs_reference() {
+    let (_a, path_a) = write_log(LOG);
+    let (_b, path_b) = write_log(&LOG.replace("\"swd_albedo\":60.0", "\"swd_albedo\":40.0"));
+    let runs = vec![
+        ("a".to_string(), RunMetrics::read(&path_a).unwrap()),
+        ("b".to_string(), RunMetrics::read(&path_b).unwrap()),
+    ];
+    let by_minutes = compare_panels(&runs, XAxis::Minutes);
+    let titles: Vec<&str> = by_minutes.iter().map(|p| p.title.as_str()).collect();
+    assert_eq!(
+        titles,
+        ["multiview_albedo_psnr", "swd_albedo", "images_per_sec"]
+    );
+    let swd = &by_minutes[1];
+    let names: Vec<&str> = swd.curves.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(names, ["a", "b", "floor"]);
+    assert_eq!(swd.curves[0].points, vec![(0.0, 90.0), (1.1, 60.0)]);
+    assert_eq!(swd.curves[1].points, vec![(0.0, 90.0), (1.1, 40.0)]);
+    assert!(swd.curves[2].dashed && swd.curves[2].colour == 2);
+    assert!(!swd.curves[0].dashed && swd.curves[0].colour != swd.curves[1].colour);
+
+    // Through the files: one image per axis; a run without evaluations is named.
+    let out = tempfile::tempdir().unwrap();
+    let folders = [
+        ("a".to_string(), path_a.parent().unwrap().to_path_buf()),
+        ("b".to_string(), path_b.parent().unwrap().to_path_buf()),
+    ];
+    let written = plot_runs(&folders, out.path()).unwrap();
+    assert_eq!(written.len(), 2);
+    assert!(written.iter().all(|p| p.is_file()));
+    let (_c, path_c) = write_log(
+        &LOG.lines()
+            .filter(|l| !l.contains("\"eval\""))
+            .collect::<Vec<_>>()
+            .join("\n"),
+    );
+    let no_evals = [
+        folders[0].clone(),
+        ("c".to_string(), path_c.parent().unwrap().to_path_buf()),
+    ];
+    let e = plot_runs(&no_evals, out.path()).unwrap_err().to_string();
+    assert!(e.contains("eval_kimg"), "{e}");
+}
