@@ -307,15 +307,20 @@ mod tests {
         }
     }
 
+    /// Weights of shape `[rays, bins]`, zero but for `value` at flat index `at`.
+    fn one_weight(shape: [usize; 2], at: usize, value: f32, device: &Device) -> Tensor<2> {
+        let mut w = vec![0.0f32; shape[0] * shape[1]];
+        w[at] = value;
+        Tensor::<1>::from_floats(w.as_slice(), device).reshape(shape)
+    }
+
     #[test]
     fn importance_samples_follow_the_coarse_weights() {
         let device = Device::flex();
         let cfg = CameraConfig::new();
         let (t, _) = stratified_samples(&cfg, 2, 16, false, &device);
         // Ray 0: all weight in coarse sample 5; ray 1: no weight at all (an empty ray).
-        let mut w = vec![0.0f32; 32];
-        w[5] = 0.9;
-        let w = Tensor::<1>::from_floats(w.as_slice(), &device).reshape([2, 16]);
+        let w = one_weight([2, 16], 5, 0.9, &device);
         let fine = importance_samples(&cfg, t.clone(), w, 64, false);
         assert_eq!(fine.dims(), [2, 64]);
         let fine = to_f32_vec(fine);
@@ -343,9 +348,7 @@ mod tests {
         let cfg = CameraConfig::new();
         let (t, _) = stratified_samples(&cfg, 1, 8, false, &device);
         // 9 segments: near..t0, t0..t1, ..., t7..far; all the weight on t2..t3.
-        let mut w = vec![0.0f32; 9];
-        w[3] = 0.7;
-        let w = Tensor::<1>::from_floats(w.as_slice(), &device).reshape([1, 9]);
+        let w = one_weight([1, 9], 3, 0.7, &device);
         let fine = to_f32_vec(segment_importance_samples(&cfg, t.clone(), w, 32, false));
         let tv = to_f32_vec(t);
         let inside = fine.iter().filter(|f| (tv[2]..=tv[3]).contains(*f)).count();
