@@ -77,6 +77,18 @@ pub enum EnvMapError {
     /// A tolerance that is not a positive finite number below 1.
     #[error("tolerance {0} must be in (0, 1)")]
     Tolerance(f64),
+    /// The file's header claims more texels than any input may hold (checked before the
+    /// pixels are allocated).
+    #[error(
+        "{}: the header claims a {width}x{height} image; volux reads at most {max} texels",
+        path.display()
+    )]
+    TooLarge {
+        path: PathBuf,
+        width: usize,
+        height: usize,
+        max: usize,
+    },
     /// A taper outside `[0, 1)`.
     #[error("taper {0} must be in [0, 1)")]
     Taper(f64),

@@ -104,8 +104,39 @@ fn validate(raw: RawImage, path: &Path) -> Result<EnvMap, EnvMapError> {
     )
 }
 
+/// The most texels an image file may hold: a 16384 x 8192 environment map (1.5 GiB as
+/// linear RGB f32). Checked against the file's header before any pixel is allocated, so that
+/// a header that lies cannot ask for hundreds of gigabytes.
+pub const MAX_TEXELS: usize = 16384 * 8192;
+
+fn too_large(path: &Path, width: usize, height: usize) -> EnvMapError {
+    EnvMapError::TooLarge {
+        path: path.to_path_buf(),
+        width,
+        height,
+        max: MAX_TEXELS,
+    }
+}
+
 fn decode_exr(bytes: &[u8], path: &Path) -> Result<RawImage, EnvMapError> {
     use exr::prelude::*;
+    let decode_err = |e: exr::error::Error| EnvMapError::Decode {
+        path: path.to_path_buf(),
+        format: "OpenEXR",
+        message: e.to_string(),
+    };
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), true)
+        .map_err(decode_err)?;
+    for header in &meta.headers {
+        let size = header.layer_size;
+        if size
+            .width()
+            .checked_mul(size.height())
+            .is_none_or(|n| n > MAX_TEXELS)
+        {
+            return Err(too_large(path, size.width(), size.height()));
+        }
+    }
     let image = read()
         .no_deep_data()
         .largest_resolution_level()
@@ -124,11 +155,7 @@ fn decode_exr(bytes: &[u8], path: &Path) -> Result<RawImage, EnvMapError> {
         // Pedantic: a truncated or corrupt file is an error, not an image with holes.
         .pedantic()
         .from_buffered(std::io::Cursor::new(bytes))
-        .map_err(|e| EnvMapError::Decode {
-            path: path.to_path_buf(),
-            format: "OpenEXR",
-            message: e.to_string(),
-        })?;
+        .map_err(decode_err)?;
     Ok(image.layer_data.channel_data.pixels)
 }
 
@@ -147,10 +174,19 @@ fn decode_dynamic<R: std::io::BufRead + std::io::Seek>(
         format,
         message,
     };
-    let reader = reader
+    let mut reader = reader
         .with_guessed_format()
         .map_err(|e| decode_err(e.to_string()))?;
-    reader.decode().map_err(|e| decode_err(e.to_string()))
+    // The decoders check these against the header before allocating.
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(MAX_TEXELS as u64 * 16);
+    reader.limits(limits);
+    reader.decode().map_err(|e| match e {
+        image::ImageError::Limits(_) => {
+            decode_err(format!("{e} (volux reads at most {MAX_TEXELS} texels)"))
+        }
+        e => decode_err(e.to_string()),
+    })
 }
 
 /// [`decode_dynamic`] into linear RGB.
@@ -382,6 +418,44 @@ pub fn save_preview_png(path: &Path, map: &EnvMap) -> Result<(), EnvMapError> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn headers_that_claim_huge_images_are_refused_before_allocating() {
+        let dir = tempfile::tempdir().unwrap();
+        // Radiance HDR: a 100000 x 200000 header over a few bytes of "pixels" (240 GB as f32).
+        let hdr = dir.path().join("huge.hdr");
+        let mut bytes = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 100000 +X 200000\n".to_vec();
+        bytes.extend([0u8; 64]);
+        std::fs::write(&hdr, bytes).unwrap();
+        let e = super::read_raw(&hdr).unwrap_err().to_string();
+        assert!(e.contains("huge.hdr") && e.contains("at most"), "{e}");
+        // OpenEXR: a real 2x1 file whose data window is patched to 2e8 x 1 texels (one line,
+        // so the chunk table still matches; 2.4 GB as f32, past the limit).
+        let exr = dir.path().join("huge.exr");
+        super::save_exr(&exr, 2, 1, &[[0.5, 0.5, 0.5]; 2]).unwrap();
+        let mut bytes = std::fs::read(&exr).unwrap();
+        let key = b"dataWindow\0box2i\0";
+        let at = bytes
+            .windows(key.len())
+            .position(|w| w == key)
+            .expect("a data window")
+            + key.len()
+            + 4; // the attribute's size
+        bytes[at + 8..at + 12].copy_from_slice(&199_999_999i32.to_le_bytes()); // x max
+        std::fs::write(&exr, bytes).unwrap();
+        let e = super::read_raw(&exr).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                crate::EnvMapError::TooLarge {
+                    width: 200_000_000,
+                    height: 1,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+    }
+
     use super::*;
 
     fn sample_map() -> EnvMap {
