@@ -34,7 +34,9 @@ use burn::tensor::{Int, Tensor};
 
 use crate::profile::{self, Phase};
 use crate::ray_marching;
-use crate::ray_sampling::{CameraConfig, segment_importance_samples, stratified_samples};
+use crate::ray_sampling::{
+    CameraConfig, segment_edges, segment_importance_samples, stratified_samples,
+};
 use crate::volume_rendering::{Field, RendererConfig};
 
 /// Compositing weights `[rays, samples + 1]` of the segments `near..t_0, t_0..t_1, ...,
@@ -42,11 +44,8 @@ use crate::volume_rendering::{Field, RendererConfig};
 /// inner segments at the mean density of their two ends, the two end segments at their one
 /// sample's density.
 pub fn segment_weights(camera: &CameraConfig, t: Tensor<2>, sigma: Tensor<2>) -> Tensor<2> {
-    let [rays, s] = t.dims();
-    let device = t.device();
-    let near = Tensor::<2>::full([rays, 1], camera.near as f32, &device);
-    let far = Tensor::<2>::full([rays, 1], camera.far as f32, &device);
-    let edges = Tensor::cat(vec![near, t, far], 1);
+    let s = t.dims()[1];
+    let edges = segment_edges(camera, t);
     let lengths = edges.clone().narrow(1, 1, s + 1) - edges.narrow(1, 0, s + 1);
     let mut parts = vec![sigma.clone().narrow(1, 0, 1)];
     if s > 1 {

@@ -168,8 +168,7 @@ pub fn importance_samples(
     let device = t.device();
     let t = t.detach();
     // Bin edges [rays, samples + 1].
-    let near = Tensor::<2>::full([rays, 1], config.near as f32, &device);
-    let far = Tensor::<2>::full([rays, 1], config.far as f32, &device);
+    let (near, far) = ends(config, rays, &device);
     let edges = if samples > 1 {
         let mid =
             (t.clone().narrow(1, 0, samples - 1) + t.narrow(1, 1, samples - 1)).mul_scalar(0.5);
@@ -192,12 +191,28 @@ pub fn segment_importance_samples(
     count: usize,
     jitter: bool,
 ) -> Tensor<2> {
-    let [rays, _] = t.dims();
-    let device = t.device();
-    let near = Tensor::<2>::full([rays, 1], config.near as f32, &device);
-    let far = Tensor::<2>::full([rays, 1], config.far as f32, &device);
-    let edges = Tensor::cat(vec![near, t.detach(), far], 1);
-    draw_from_bins(config, edges, weights, count, jitter)
+    draw_from_bins(
+        config,
+        segment_edges(config, t.detach()),
+        weights,
+        count,
+        jitter,
+    )
+}
+
+/// `near` and `far` as `[rays, 1]` columns.
+fn ends(config: &CameraConfig, rays: usize, device: &Device) -> (Tensor<2>, Tensor<2>) {
+    (
+        Tensor::full([rays, 1], config.near as f32, device),
+        Tensor::full([rays, 1], config.far as f32, device),
+    )
+}
+
+/// The edges `near, t_0, ..., t_last, far` (`[rays, samples + 2]`) of the segments between
+/// sorted depths `t` (`[rays, samples]`).
+pub fn segment_edges(config: &CameraConfig, t: Tensor<2>) -> Tensor<2> {
+    let (near, far) = ends(config, t.dims()[0], &t.device());
+    Tensor::cat(vec![near, t, far], 1)
 }
 
 /// `count` sorted depths drawn by inverse transform of stratified uniforms from the
