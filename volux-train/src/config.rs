@@ -316,7 +316,7 @@ impl TrainConfig {
         };
         let (data, data_hashed) = DataConfig::from_text(&text, path).map_err(|e| match e {
             DataError::File { message, .. } => bad(message),
-            other => bad(other.to_string()),
+            other => bad(volux_envmap::error::chain(&other)),
         })?;
         let file: ConfigFile = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
         let config = TrainConfig {
