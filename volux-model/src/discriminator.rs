@@ -19,7 +19,8 @@
 //! R1 (`gamma / 2 * E ||d logit / d x||^2` on reals) needs a gradient inside a loss, and Burn's
 //! autodiff is first order. [`Discriminator::input_gradient`] therefore computes
 //! `d(sum of logits) / d x` by a reverse sweep written with ordinary tensor ops (convolutions by
-//! transposed convolutions with the same weights, leaky ReLU by its derivative mask, blur and
+//! transposed convolutions with the same weights, leaky ReLU by its derivative mask
+//! ([`crate::bias_act::lrelu_input_gradient`], read from the activation's output), blur and
 //! downsampling by their adjoints, minibatch std by its exact derivative, fully connected layers
 //! by the transposed matmul). First-order autodiff of [`r1_penalty`] with respect to the weights
 //! is then the exact R1 gradient.
@@ -30,11 +31,11 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 
+use crate::bias_act::lrelu_input_gradient;
 use crate::blur::{blur, blur_adjoint, blur_downsample2, blur_downsample2_adjoint};
 use crate::equalized::{
     EqualizedConv2d, EqualizedConv2dConfig, EqualizedLinear, EqualizedLinearConfig,
 };
-use crate::mapping::{LRELU_SLOPE, lrelu_gain as lrelu};
 
 /// Added to the group variance before the square root (StyleGAN2's value).
 const MBSTD_EPSILON: f64 = 1e-8;
@@ -153,45 +154,42 @@ pub struct Discriminator {
     pub mbstd_channels: usize,
 }
 
-/// Pre-activations of one block's two convolutions, kept for the reverse sweep.
+/// Outputs of one block's two activations, kept for the reverse sweep (their signs are the
+/// activations' derivatives, [`crate::bias_act`]).
 struct BlockTrace {
     input_hw: [usize; 2],
-    pre0: Tensor<4>,
-    pre1: Tensor<4>,
+    h0: Tensor<4>,
+    h1: Tensor<4>,
 }
 
 /// What the reverse sweep needs from the forward pass.
 struct Trace {
     input_hw: [usize; 2],
-    from_rgb_pre: Tensor<4>,
+    from_rgb_out: Tensor<4>,
     blocks: Vec<BlockTrace>,
     epilogue_in: Tensor<4>,
-    conv_pre: Tensor<4>,
-    fc_pre: Tensor<2>,
-}
-
-/// The derivative of [`lrelu`] at the pre-activation `pre`: `sqrt(2)` where `pre > 0`, else
-/// `0.2 sqrt(2)`. Detached: it is piecewise constant, its derivative is zero almost everywhere.
-fn lrelu_derivative<const D: usize>(pre: &Tensor<D>) -> Tensor<D> {
-    let pre = pre.clone().detach();
-    pre.ones_like()
-        .mask_fill(pre.lower_equal_elem(0.0), LRELU_SLOPE)
-        .mul_scalar(SQRT_2)
+    conv_out: Tensor<4>,
+    fc_out: Tensor<2>,
 }
 
 impl DiscriminatorBlock {
+    /// StyleGAN2's block: `y = (skip(x) + lrelu_gain(conv1(..))) / sqrt(2)`, the `1 / sqrt(2)`
+    /// folded into the skip convolution's weights and the second activation's gain
+    /// (`sqrt(2) / sqrt(2) = 1`), as StyleGAN2 passes `gain = sqrt(0.5)` to both.
     fn forward_traced(&self, x: Tensor<4>) -> (Tensor<4>, BlockTrace) {
         let [_, _, h, w] = x.dims();
-        let skip = self.skip.forward_strided(blur_downsample2(x.clone()), 1, 0);
-        let pre0 = self.conv0.forward(x);
-        let pre1 = self
+        let skip = self
+            .skip
+            .forward_scaled(blur_downsample2(x.clone()), 1, 0, FRAC_1_SQRT_2);
+        let h0 = self.conv0.forward_lrelu(x, SQRT_2);
+        let h1 = self
             .conv1
-            .forward_strided(blur(lrelu(pre0.clone()), 2), 2, 0);
-        let y = (skip + lrelu(pre1.clone())).mul_scalar(FRAC_1_SQRT_2);
+            .forward_strided_lrelu(blur(h0.clone(), 2), 2, 0, 1.0);
+        let y = skip + h1.clone();
         let trace = BlockTrace {
             input_hw: [h, w],
-            pre0,
-            pre1,
+            h0,
+            h1,
         };
         (y, trace)
     }
@@ -200,11 +198,16 @@ impl DiscriminatorBlock {
     /// output) at the point recorded in `trace`.
     fn input_gradient(&self, g: Tensor<4>, trace: BlockTrace) -> Tensor<4> {
         let [h, w] = trace.input_hw;
-        let g = g.mul_scalar(FRAC_1_SQRT_2);
-        let g_skip = blur_downsample2_adjoint(self.skip.adjoint(g.clone(), 1, 0, [h / 2, w / 2]));
-        let g_pre1 = g * lrelu_derivative(&trace.pre1);
+        let g_skip = blur_downsample2_adjoint(self.skip.adjoint_scaled(
+            g.clone(),
+            1,
+            0,
+            [h / 2, w / 2],
+            FRAC_1_SQRT_2,
+        ));
+        let g_pre1 = lrelu_input_gradient(g, trace.h1, 1.0);
         let g_blurred = self.conv1.adjoint(g_pre1, 2, 0, [h + 1, w + 1]);
-        let g_pre0 = blur_adjoint(g_blurred, 2) * lrelu_derivative(&trace.pre0);
+        let g_pre0 = lrelu_input_gradient(blur_adjoint(g_blurred, 2), trace.h0, SQRT_2);
         g_skip + self.conv0.adjoint(g_pre0, 1, 1, [h, w])
     }
 }
@@ -212,8 +215,8 @@ impl DiscriminatorBlock {
 impl Discriminator {
     fn forward_traced(&self, x: Tensor<4>) -> (Tensor<2>, Trace) {
         let [batch, _, h, w] = x.dims();
-        let from_rgb_pre = self.from_rgb.forward(x);
-        let mut x = lrelu(from_rgb_pre.clone());
+        let from_rgb_out = self.from_rgb.forward_lrelu(x, SQRT_2);
+        let mut x = from_rgb_out.clone();
         let mut blocks = Vec::with_capacity(self.blocks.len());
         for block in &self.blocks {
             let (y, trace) = block.forward_traced(x);
@@ -221,22 +224,21 @@ impl Discriminator {
             x = y;
         }
         let epilogue_in = x;
-        let conv_pre = self.conv.forward(minibatch_std(
-            epilogue_in.clone(),
-            self.mbstd_group,
-            self.mbstd_channels,
-        ));
-        let [_, c, hh, ww] = conv_pre.dims();
-        let flat = lrelu(conv_pre.clone()).reshape([batch, c * hh * ww]);
-        let fc_pre = self.fc.forward(flat);
-        let logits = self.out.forward(lrelu(fc_pre.clone()));
+        let conv_out = self.conv.forward_lrelu(
+            minibatch_std(epilogue_in.clone(), self.mbstd_group, self.mbstd_channels),
+            SQRT_2,
+        );
+        let [_, c, hh, ww] = conv_out.dims();
+        let flat = conv_out.clone().reshape([batch, c * hh * ww]);
+        let fc_out = self.fc.forward_lrelu(flat, SQRT_2);
+        let logits = self.out.forward(fc_out.clone());
         let trace = Trace {
             input_hw: [h, w],
-            from_rgb_pre,
+            from_rgb_out,
             blocks,
             epilogue_in,
-            conv_pre,
-            fc_pre,
+            conv_out,
+            fc_out,
         };
         (logits, trace)
     }
@@ -257,12 +259,12 @@ impl Discriminator {
         let (logits, trace) = self.forward_traced(x);
         let [batch, _] = logits.dims();
         let g_fc_out = logits.ones_like().matmul(self.out.effective_weight());
-        let g_fc_pre = g_fc_out * lrelu_derivative(&trace.fc_pre);
-        let [_, c, hh, ww] = trace.conv_pre.dims();
+        let g_fc_pre = lrelu_input_gradient(g_fc_out, trace.fc_out, SQRT_2);
+        let [_, c, hh, ww] = trace.conv_out.dims();
         let g_conv_out = g_fc_pre
             .matmul(self.fc.effective_weight())
             .reshape([batch, c, hh, ww]);
-        let g_conv_pre = g_conv_out * lrelu_derivative(&trace.conv_pre);
+        let g_conv_pre = lrelu_input_gradient(g_conv_out, trace.conv_out, SQRT_2);
         let g_mbstd = self.conv.adjoint(g_conv_pre, 1, 1, [hh, ww]);
         let mut g = minibatch_std_input_gradient(
             trace.epilogue_in,
@@ -273,7 +275,7 @@ impl Discriminator {
         for (block, block_trace) in self.blocks.iter().zip(trace.blocks).rev() {
             g = block.input_gradient(g, block_trace);
         }
-        let g_pre = g * lrelu_derivative(&trace.from_rgb_pre);
+        let g_pre = lrelu_input_gradient(g, trace.from_rgb_out, SQRT_2);
         let grad = self.from_rgb.adjoint(g_pre, 1, 0, trace.input_hw);
         (logits, grad)
     }

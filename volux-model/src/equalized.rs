@@ -10,6 +10,7 @@ use burn::tensor::module::conv_transpose2d;
 use burn::tensor::ops::ConvTransposeOptions;
 use burn::tensor::{Device, Distribution, Tensor};
 
+use crate::bias_act;
 use crate::convolution::{self, ConvGeometry};
 
 /// Configuration of an [`EqualizedLinear`] layer.
@@ -86,6 +87,13 @@ impl EqualizedLinear {
             Some(b) => y + b.unsqueeze_dim(0),
             None => y,
         }
+    }
+
+    /// [`Self::forward`] followed by StyleGAN2's leaky ReLU with `gain`, the bias, activation
+    /// and gain as one fused operation ([`bias_act::bias_lrelu`]).
+    pub fn forward_lrelu(&self, x: Tensor<2>, gain: f64) -> Tensor<2> {
+        let y = x.matmul(self.effective_weight().transpose());
+        bias_act::bias_lrelu(y, self.effective_bias(), gain)
     }
 }
 
@@ -179,18 +187,58 @@ impl EqualizedConv2d {
     /// The convolution with any stride and symmetric zero padding:
     /// `[batch, channels_in, h, w] -> [batch, channels_out, (h + 2 padding - k) / stride + 1, ..]`.
     pub fn forward_strided(&self, x: Tensor<4>, stride: usize, padding: usize) -> Tensor<4> {
+        self.forward_scaled(x, stride, padding, 1.0)
+    }
+
+    /// [`Self::forward_strided`] times `gain`, the gain applied to the (small) weights and
+    /// bias rather than to the output.
+    pub fn forward_scaled(
+        &self,
+        x: Tensor<4>,
+        stride: usize,
+        padding: usize,
+        gain: f64,
+    ) -> Tensor<4> {
         let y = convolution::conv2d(
             x,
-            self.effective_weight(),
+            self.scaled_weight(gain),
             ConvGeometry::new(stride, padding),
         );
         match self.effective_bias() {
             Some(b) => {
                 let o = b.dims()[0];
-                y + b.reshape([1, o, 1, 1])
+                y + scaled(b, gain).reshape([1, o, 1, 1])
             }
             None => y,
         }
+    }
+
+    /// [`Self::forward`] ('same' padding) followed by StyleGAN2's leaky ReLU with `gain`.
+    pub fn forward_lrelu(&self, x: Tensor<4>, gain: f64) -> Tensor<4> {
+        let k = self.kernel_size();
+        self.forward_strided_lrelu(x, 1, k / 2, gain)
+    }
+
+    /// [`Self::forward_strided`] followed by StyleGAN2's leaky ReLU with `gain`, the bias,
+    /// activation and gain as one fused operation ([`bias_act::bias_lrelu`]).
+    pub fn forward_strided_lrelu(
+        &self,
+        x: Tensor<4>,
+        stride: usize,
+        padding: usize,
+        gain: f64,
+    ) -> Tensor<4> {
+        let y = convolution::conv2d(
+            x,
+            self.effective_weight(),
+            ConvGeometry::new(stride, padding),
+        );
+        bias_act::bias_lrelu(y, self.effective_bias(), gain)
+    }
+
+    /// The effective weight times `gain` (no operation for a gain of 1).
+    fn scaled_weight(&self, gain: f64) -> Tensor<4> {
+        scaled(self.effective_weight(), gain)
     }
 
     /// The adjoint (transpose) of the linear part of [`Self::forward_strided`] with the same
@@ -205,13 +253,30 @@ impl EqualizedConv2d {
         padding: usize,
         input_hw: [usize; 2],
     ) -> Tensor<4> {
+        self.adjoint_scaled(y, stride, padding, input_hw, 1.0)
+    }
+
+    /// The adjoint of the linear part of [`Self::forward_scaled`] with `gain`.
+    pub fn adjoint_scaled(
+        &self,
+        y: Tensor<4>,
+        stride: usize,
+        padding: usize,
+        input_hw: [usize; 2],
+        gain: f64,
+    ) -> Tensor<4> {
         convolution::conv2d_adjoint(
             y,
-            self.effective_weight(),
+            self.scaled_weight(gain),
             ConvGeometry::new(stride, padding),
             input_hw,
         )
     }
+}
+
+/// `t gain`, or `t` itself for a gain of exactly 1.
+fn scaled<const D: usize>(t: Tensor<D>, gain: f64) -> Tensor<D> {
+    if gain == 1.0 { t } else { t.mul_scalar(gain) }
 }
 
 /// `conv_transpose2d` whose output has spatial size `out_hw` (the output padding is chosen to

@@ -2,9 +2,11 @@
 //! norm -> fully connected layers with leaky ReLU -> `w`, which every modulated layer turns into
 //! its own style with its own affine.
 
+use std::f64::consts::SQRT_2;
+
 use burn::config::Config;
 use burn::module::Module;
-use burn::tensor::{Device, Tensor, activation};
+use burn::tensor::{Device, Tensor};
 
 use crate::equalized::{EqualizedLinear, EqualizedLinearConfig};
 
@@ -30,14 +32,6 @@ pub struct MappingNetworkConfig {
 pub struct MappingNetwork {
     /// The fully connected layers, first to last.
     pub layers: Vec<EqualizedLinear>,
-}
-
-/// Negative slope of StyleGAN2's leaky ReLU.
-pub const LRELU_SLOPE: f64 = 0.2;
-
-/// StyleGAN2's leaky ReLU: slope 0.2, then a gain of sqrt(2) to keep unit variance.
-pub fn lrelu_gain<const D: usize>(x: Tensor<D>) -> Tensor<D> {
-    activation::leaky_relu(x, LRELU_SLOPE).mul_scalar(std::f64::consts::SQRT_2)
 }
 
 /// Normalises each row to unit mean square (StyleGAN's pixel norm on `z`).
@@ -66,7 +60,7 @@ impl MappingNetwork {
     pub fn forward(&self, z: Tensor<2>) -> Tensor<2> {
         self.layers
             .iter()
-            .fold(pixel_norm(z), |x, layer| lrelu_gain(layer.forward(x)))
+            .fold(pixel_norm(z), |x, layer| layer.forward_lrelu(x, SQRT_2))
     }
 
     /// Number of scalar parameters.

@@ -9,12 +9,13 @@
 //! map is [`tonemap_srgb`], the same curve as `volux_envmap::io::tonemap` at exposure 1, which
 //! the data pipeline uses for its pseudo-ground-truth relit images.
 
+use std::f64::consts::SQRT_2;
+
 use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 
 use crate::equalized::{EqualizedConv2d, EqualizedConv2dConfig};
-use crate::mapping::lrelu_gain;
 use crate::upsampler::bilinear_upsample;
 
 /// `[b, 3, h, w]` linear HDR -> sRGB in [0, 1]: luminance Reinhard `x / (1 + Y)`, then the sRGB
@@ -74,7 +75,8 @@ impl ConvPair {
     }
 
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        lrelu_gain(self.b.forward(lrelu_gain(self.a.forward(x))))
+        self.b
+            .forward_lrelu(self.a.forward_lrelu(x, SQRT_2), SQRT_2)
     }
 }
 
