@@ -6,8 +6,10 @@
 //! paper's ablation; [`crate::shading`]).
 //!
 //! Sampling is EG3D's by default: stratified samples, then importance samples drawn from the
-//! stratified pass's weights; both passes are evaluated by the field and composited together,
-//! sorted by depth. With `proposal > 0` the importance samples are placed by density-only
+//! stratified pass's weights; both passes are evaluated by the field and composited together:
+//! the quadrature runs over their depths and densities in depth order, and each sample's mass
+//! then weighs its own values where the passes left them (no gathering of every channel into
+//! depth order). With `proposal > 0` the importance samples are placed by density-only
 //! passes instead ([`crate::proposal`]), whose samples join the compositing weights and lend
 //! them to the nearest full sample's values. What is not asked for is not computed: no light-map look-ups without shading, no
 //! tangent propagation without normals or shading, no field head without albedo, features or
@@ -15,7 +17,7 @@
 
 use burn::config::Config;
 use burn::module::Module;
-use burn::tensor::{IndexingUpdateOp, Int, Tensor};
+use burn::tensor::{IndexingUpdateOp, Tensor};
 
 use crate::light_lookup::LightMapBatch;
 use crate::neiif::{FieldOutput, FieldWants, Neiif};
@@ -278,26 +280,23 @@ fn evaluate(
     }
 }
 
-fn merge3(a: Option<Tensor<3>>, b: Option<Tensor<3>>, order: &Tensor<2, Int>) -> Option<Tensor<3>> {
-    let (a, b) = (a?, b?);
-    let [n, s] = order.dims();
-    let both = Tensor::cat(vec![a, b], 1);
-    let c = both.dims()[2];
-    let index = order.clone().reshape([n, s, 1]).expand([n, s, c]);
-    Some(both.gather(1, index))
+fn concat3(a: Option<Tensor<3>>, b: Option<Tensor<3>>) -> Option<Tensor<3>> {
+    Some(Tensor::cat(vec![a?, b?], 1))
 }
 
-/// Both passes' samples, sorted by depth.
-fn merge(a: Samples, b: Samples) -> Samples {
-    let (t, order) = Tensor::cat(vec![a.t, b.t], 1).sort_with_indices(1);
-    let sigma = Tensor::cat(vec![a.sigma, b.sigma], 1).gather(1, order.clone());
+/// Both passes' samples side by side, the stratified ones first. Compositing is a sum over
+/// samples, so only the quadrature needs them in depth order: [`render`] sorts the depths and
+/// densities (one channel each) and sends each sample's mass back to its place here, instead
+/// of gathering every channel of every sample into depth order (and scattering them back in
+/// the backward pass).
+fn concat(a: Samples, b: Samples) -> Samples {
     Samples {
-        t,
-        sigma,
-        normals: merge3(a.normals, b.normals, &order),
-        albedo: merge3(a.albedo, b.albedo, &order),
-        specular_weights: merge3(a.specular_weights, b.specular_weights, &order),
-        features: merge3(a.features, b.features, &order),
+        t: Tensor::cat(vec![a.t, b.t], 1),
+        sigma: Tensor::cat(vec![a.sigma, b.sigma], 1),
+        normals: concat3(a.normals, b.normals),
+        albedo: concat3(a.albedo, b.albedo),
+        specular_weights: concat3(a.specular_weights, b.specular_weights),
+        features: concat3(a.features, b.features),
     }
 }
 
@@ -352,22 +351,27 @@ pub fn render(
         evaluate(field, &origins, &dirs, t, field_wants)
     });
     let samples = match (coarse, fine) {
-        (Some(coarse), Some(fine)) => merge(coarse, fine),
+        (Some(coarse), Some(fine)) => concat(coarse, fine),
         (Some(only), None) | (None, Some(only)) => only,
         (None, None) => unreachable!("check_samples asks for samples to composite"),
     };
     let s = samples.t.dims()[1];
-    // The depths and densities the quadrature runs over: the composited samples, joined by
-    // the density-only ones when a proposal placed them (`owner`: the composited sample whose
-    // values each entry carries).
+    // The quadrature runs over the composited samples, joined by the density-only ones when a
+    // proposal placed them, in depth order; `owner` is, for each entry in that order, the
+    // composited sample (its index in `samples`) whose values it carries: itself, or for a
+    // density-only entry the nearest composited sample.
     let (t_all, sigma_all, owner) = match proposed {
         Some(p) => {
             let (t, order) = Tensor::cat(vec![samples.t.clone(), p.t], 1).sort_with_indices(1);
             let sigma = Tensor::cat(vec![samples.sigma.clone(), p.sigma], 1).gather(1, order);
             let owner = proposal::nearest(t.clone(), samples.t.clone());
-            (t, sigma, Some(owner))
+            (t, sigma, owner)
         }
-        None => (samples.t.clone(), samples.sigma.clone(), None),
+        None => {
+            let (t, order) = samples.t.clone().sort_with_indices(1);
+            let sigma = samples.sigma.clone().gather(1, order.clone());
+            (t, sigma, order)
+        }
     };
     let n = t_all.dims()[1];
     // Midpoint rule: segment i runs from entry i to entry i + 1 and carries the mean of their
@@ -389,16 +393,13 @@ pub fn render(
         (w.clone(), w)
     };
     // Each composited sample's share: its own mass and that of the density-only entries it
-    // owns.
-    let share = match owner {
-        Some(owner) => Tensor::<2>::zeros([b * r, s], &device).scatter(
-            1,
-            owner,
-            mass.clone(),
-            IndexingUpdateOp::Add,
-        ),
-        None => mass.clone(),
-    };
+    // owns, in the samples' own order.
+    let share = Tensor::<2>::zeros([b * r, s], &device).scatter(
+        1,
+        owner,
+        mass.clone(),
+        IndexingUpdateOp::Add,
+    );
     let to_image = |x: Tensor<2>| -> Tensor<3> {
         let c = x.dims()[1];
         x.reshape([b, r, c])
@@ -731,51 +732,104 @@ mod tests {
 }
 
 #[cfg(test)]
-mod merge_tests {
+mod compositing_order_tests {
     use super::*;
     use crate::analytic::SoftSphere;
     use crate::backend::to_f32_vec;
     use crate::ray_sampling::camera_ray_batch;
     use burn::tensor::Device;
 
+    /// The plain way: every channel of both passes gathered into depth order, then the
+    /// midpoint rule over the sorted samples.
+    fn sorted_reference(coarse: Samples, fine: Samples) -> [Tensor<2>; 4] {
+        let (t, order) = Tensor::cat(vec![coarse.t, fine.t], 1).sort_with_indices(1);
+        let sigma = Tensor::cat(vec![coarse.sigma, fine.sigma], 1).gather(1, order.clone());
+        let gather = |a: Option<Tensor<3>>, b: Option<Tensor<3>>| -> Tensor<3> {
+            let both = Tensor::cat(vec![a.unwrap(), b.unwrap()], 1);
+            let [n, s, c] = both.dims();
+            both.gather(1, order.clone().reshape([n, s, 1]).expand([n, s, c]))
+        };
+        let albedo = gather(coarse.albedo, fine.albedo);
+        let normals = gather(coarse.normals, fine.normals);
+        let features = gather(coarse.features, fine.features);
+        let [rays, n] = t.dims();
+        let delta = t.clone().narrow(1, 1, n - 1) - t.clone().narrow(1, 0, n - 1);
+        let mid = (sigma.clone().narrow(1, 0, n - 1) + sigma.narrow(1, 1, n - 1)).mul_scalar(0.5);
+        let w = ray_marching::weights(mid, delta);
+        let zero = Tensor::<2>::zeros([rays, 1], &t.device());
+        let mass = (Tensor::cat(vec![zero.clone(), w.clone()], 1) + Tensor::cat(vec![w, zero], 1))
+            .mul_scalar(0.5);
+        [
+            ray_marching::accumulate(mass.clone(), albedo),
+            ray_marching::accumulate(mass.clone(), normals),
+            ray_marching::accumulate(mass.clone(), features),
+            ray_marching::accumulate(mass, t.reshape([rays, n, 1])),
+        ]
+    }
+
     #[test]
-    fn merged_samples_carry_the_values_of_their_own_depths() {
+    fn compositing_in_the_passes_order_equals_compositing_in_depth_order() {
         let device = Device::flex();
         let sphere = SoftSphere {
             radius: 0.3,
             softness: 0.01,
             peak: 60.0,
-            albedo: [0.5; 3],
+            albedo: [0.5, 0.3, 0.9],
             specular_weights: vec![0.1],
         };
-        let cfg = CameraConfig::new();
+        let config = RendererConfig::new()
+            .with_stratified(8)
+            .with_importance(8)
+            .with_midpoint(true);
+        let cfg = config.camera.clone();
         let (o, d) = camera_ray_batch(&cfg, &[(0.1, 0.05)], 6, 6, &device);
-        let (t, _) = stratified_samples(&cfg, 36, 8, true, &device);
-        let wants = FieldWants::ALL;
-        let coarse = evaluate(&sphere, &o, &d, t, wants);
+        let wants = RenderWants {
+            albedo: true,
+            normals: true,
+            features: true,
+            depth: true,
+            shading: false,
+        };
+        let out = render(&config, &sphere, o.clone(), d.clone(), None, wants, false);
+        // The same samples, composited the plain way.
+        let (t, _) = stratified_samples(&cfg, 36, 8, false, &device);
+        let coarse = evaluate(&sphere, &o, &d, t, wants.field());
         let w = ray_marching::weights(
             coarse.sigma.clone(),
             segment_lengths(coarse.t.clone(), cfg.far),
         );
-        let t_fine = importance_samples(&cfg, coarse.t.clone(), w, 8, true);
-        let fine = evaluate(&sphere, &o, &d, t_fine, wants);
-        let merged = merge(coarse, fine);
-        let again = evaluate(&sphere, &o, &d, merged.t.clone(), wants);
-        let t = to_f32_vec(merged.t.clone());
-        for row in t.chunks(16) {
-            assert!(row.windows(2).all(|p| p[0] <= p[1]), "sorted: {row:?}");
-        }
-        let diff: f32 = (merged.sigma.clone() - again.sigma)
-            .abs()
-            .max()
-            .into_scalar();
-        assert!(diff < 1e-4, "sigma differs by {diff}");
-        for (a, b) in [
-            (merged.normals.unwrap(), again.normals.unwrap()),
-            (merged.features.unwrap(), again.features.unwrap()),
+        let t_fine = importance_samples(&cfg, coarse.t.clone(), w, 8, false);
+        let fine = evaluate(&sphere, &o, &d, t_fine, wants.field());
+        let [albedo, normals, features, depth] = sorted_reference(coarse, fine);
+        let opacity = to_f32_vec(out.opacity.clone());
+        let depth: Vec<f32> = to_f32_vec(depth)
+            .iter()
+            .zip(&opacity)
+            .map(|(e, a)| e + (1.0 - a) * cfg.far as f32)
+            .collect();
+        assert!(opacity.iter().any(|a| *a > 0.9), "some rays hit the sphere");
+        for (what, got, want) in [
+            (
+                "albedo",
+                to_f32_vec(out.albedo.unwrap()),
+                to_f32_vec(albedo),
+            ),
+            (
+                "normals",
+                to_f32_vec(out.normals.unwrap()),
+                to_f32_vec(normals),
+            ),
+            (
+                "features",
+                to_f32_vec(out.features.unwrap()),
+                to_f32_vec(features),
+            ),
+            ("depth", to_f32_vec(out.depth.unwrap()), depth),
         ] {
-            let diff: f32 = (a - b).abs().max().into_scalar();
-            assert!(diff < 1e-4, "per-sample values differ by {diff}");
+            assert_eq!(got.len(), want.len(), "{what}");
+            for (g, w) in got.iter().zip(&want) {
+                assert!((g - w).abs() < 1e-5 * (1.0 + w.abs()), "{what}: {g} vs {w}");
+            }
         }
     }
 }
