@@ -23,14 +23,14 @@ use burn::backend::autodiff::checkpoint::strategy::{
     BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
 };
 use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, NodeGuard, Ops, OpsKind};
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::FlexTensor;
 use burn::backend::{Autodiff, Flex, GradientCheckpointingStrategy, TensorMetadata};
 use burn::tensor::{DType, DispatchTensor, Tensor, activation};
 use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
-use crate::flex_extension::{Route, contiguous, flex_tensor, route};
+use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
 
 /// Negative slope of StyleGAN2's leaky ReLU.
 pub const LRELU_SLOPE: f64 = 0.2;
@@ -143,27 +143,13 @@ fn check(dims: &[usize], gain: f64) -> usize {
     dims[1]
 }
 
-/// An autodiff flex tensor's inner tensor and node, for checkpointing strategy `C`.
-type Parts = (FlexTensor, NodeGuard);
-
-fn into_parts<C, const D: usize>(t: Tensor<D>) -> Parts
-where
-    C: CheckpointStrategy,
-    DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,
-{
-    let Ok(t) = t.try_into_primitive::<Autodiff<Flex, C>>() else {
-        unreachable!("an autodiff flex device holds autodiff flex tensors")
-    };
-    t.into_parts()
-}
-
 fn bias_lrelu_autodiff<C, const D: usize>(x: Tensor<D>, bias: Tensor<1>, gain: f64) -> Tensor<D>
 where
     C: CheckpointStrategy,
     DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,
 {
-    let (x, x_node) = into_parts::<C, D>(x);
-    let (bias, bias_node) = into_parts::<C, 1>(bias);
+    let (x, x_node) = autodiff_parts::<C, D>(x);
+    let (bias, bias_node) = autodiff_parts::<C, 1>(bias);
     let out = forward_flex(&x, &bias, gain);
     let out = match BiasLreluBackward
         .prepare::<C>([x_node, bias_node])
@@ -187,8 +173,8 @@ where
     C: CheckpointStrategy,
     DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,
 {
-    let (g, g_node) = into_parts::<C, D>(g);
-    let (y, _) = into_parts::<C, D>(y.detach());
+    let (g, g_node) = autodiff_parts::<C, D>(g);
+    let (y, _) = autodiff_parts::<C, D>(y.detach());
     let out = gradient_flex(&g, &y, gain);
     let out = match InputGradientBackward
         .prepare::<C>([g_node])

@@ -9,9 +9,12 @@
 
 use std::borrow::Cow;
 
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::ops::NodeGuard;
 use burn::backend::flex::FlexTensor;
-use burn::backend::{DispatchDevice, GradientCheckpointingStrategy};
-use burn::tensor::{Device, TensorData};
+use burn::backend::{Autodiff, DispatchDevice, Flex, GradientCheckpointingStrategy};
+use burn::tensor::{Device, DispatchTensor, Tensor, TensorData};
+use burn_dispatch::DispatchKindConversion;
 
 /// Where a custom operation runs on a device.
 pub(crate) enum Route {
@@ -47,4 +50,18 @@ pub(crate) fn contiguous(t: &FlexTensor) -> Cow<'_, [f32]> {
 /// A flex tensor owning `values` with `shape`.
 pub(crate) fn flex_tensor(values: Vec<f32>, shape: Vec<usize>) -> FlexTensor {
     FlexTensor::from_data(TensorData::new(values, shape))
+}
+
+/// An autodiff flex tensor's inner flex tensor and its node guard, for the checkpointing
+/// strategy `C` of the device's route (generic over `C`, so that one function serves
+/// [`Route::Autodiff`] with either strategy).
+pub(crate) fn autodiff_parts<C, const D: usize>(t: Tensor<D>) -> (FlexTensor, NodeGuard)
+where
+    C: CheckpointStrategy,
+    DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,
+{
+    let Ok(t) = t.try_into_primitive::<Autodiff<Flex, C>>() else {
+        unreachable!("an autodiff flex device holds autodiff flex tensors")
+    };
+    t.into_parts()
 }

@@ -3,16 +3,18 @@
 //! computes, so the look-up must be differentiable with respect to the direction.
 //!
 //! Each batch element has its own light maps (its own HDRI) and its own yaw rotation. The maps
-//! are the padded arrays of [`volux_envmap::LightMap::padded`], sampled with Burn's bilinear
-//! `grid_sample_2d` (`align_corners = true`) at padded pixel `(u W + 0.5, v H + 0.5)`, which is
+//! are the padded arrays of [`volux_envmap::LightMap::padded`], sampled bilinearly (as Burn's
+//! `grid_sample_2d` with `align_corners = true` would; on the CPU one fused kernel,
+//! `bilinear.rs`) at padded pixel `(u W + 0.5, v H + 0.5)`, which is
 //! exactly [`volux_envmap::LightMap::lookup_rotated`]: wrapped in azimuth, continuous over the
 //! poles.
 
 use std::f32::consts::PI;
 
-use burn::tensor::ops::{GridSampleOptions, GridSamplePaddingMode, InterpolateMode};
 use burn::tensor::{Device, Tensor, TensorData};
 use volux_envmap::LightMap;
+
+mod bilinear;
 
 /// Keeps `atan2` and `sqrt` differentiable exactly at the poles, where the azimuth is
 /// undefined (it moves `theta` by at most 1e-6 rad there).
@@ -24,8 +26,6 @@ pub struct LightMapBatch {
     /// `[batch, 3, height + 2, width + 2]`, the padded layout.
     padded: Tensor<4>,
     exponent: u32,
-    width: usize,
-    height: usize,
 }
 
 /// Why a batch of light maps cannot be built.
@@ -77,8 +77,6 @@ impl LightMapBatch {
         Ok(Self {
             padded,
             exponent: first.exponent(),
-            width: w,
-            height: h,
         })
     }
 
@@ -103,20 +101,7 @@ impl LightMapBatch {
     /// `L_n` at texture coordinates from [`directions_to_uv`] (`[batch, points, 1]` each), so
     /// that several maps sampled in one direction share its conversion.
     pub fn lookup_uv(&self, u: Tensor<3>, v: Tensor<3>) -> Tensor<3> {
-        let [b, n, _] = u.dims();
-        let (w, h) = (self.width as f32, self.height as f32);
-        let gx = (u.mul_scalar(w).add_scalar(0.5))
-            .mul_scalar(2.0 / (w + 1.0))
-            .sub_scalar(1.0);
-        let gy = (v.mul_scalar(h).add_scalar(0.5))
-            .mul_scalar(2.0 / (h + 1.0))
-            .sub_scalar(1.0);
-        let grid = Tensor::cat(vec![gx, gy], 2).reshape([b, n, 1, 2]);
-        let options = GridSampleOptions::new(InterpolateMode::Bilinear)
-            .with_padding_mode(GridSamplePaddingMode::Border)
-            .with_align_corners(true);
-        let sampled = self.padded.clone().grid_sample_2d(grid, options); // [b, 3, n, 1]
-        sampled.reshape([b, 3, n]).swap_dims(1, 2)
+        bilinear::sample(&self.padded, u, v)
     }
 }
 
@@ -274,6 +259,163 @@ mod tests {
         let grads = batch.lookup(d.clone(), None).sum().backward();
         let g: Vec<f32> = to_f32_vec(d.grad(&grads).unwrap());
         assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
+    }
+
+    /// `sum(sample(u, v) * r)`: the samples and the gradients with respect to `u` and `v`.
+    fn sample_and_grads(
+        f: fn(&Tensor<4>, Tensor<3>, Tensor<3>) -> Tensor<3>,
+        batch: &LightMapBatch,
+        u: &[f32],
+        v: &[f32],
+        r: &[f32],
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let device = batch.padded.device();
+        let (b, n) = (batch.batch(), u.len() / batch.batch());
+        let coordinate = |x: &[f32]| {
+            Tensor::<1>::from_floats(x, &device)
+                .reshape([b, n, 1])
+                .require_grad()
+        };
+        let (ut, vt) = (coordinate(u), coordinate(v));
+        let rt = Tensor::<1>::from_floats(r, &device).reshape([b, n, 3]);
+        let out = f(&batch.padded, ut.clone(), vt.clone());
+        let grads = (out.clone() * rt).sum().backward();
+        (
+            to_f32_vec(out),
+            to_f32_vec(ut.grad(&grads).unwrap()),
+            to_f32_vec(vt.grad(&grads).unwrap()),
+        )
+    }
+
+    /// Coordinates inside the map, on texel centres and edges, at the borders and beyond
+    /// them (clamped), for `b` elements.
+    fn coordinates(b: usize, seed: u64) -> (Vec<f32>, Vec<f32>) {
+        let mut rng = SplitMix64::new(seed);
+        let special = [0.0f32, 1.0, 0.5, 1.0 / 16.0, 0.03125, 0.999_999, -0.2, 1.3];
+        let mut u = Vec::new();
+        let mut v = Vec::new();
+        for _ in 0..b {
+            for i in 0..300 {
+                let (a, c) = if i < special.len() * special.len() {
+                    (special[i % special.len()], special[i / special.len()])
+                } else {
+                    (rng.next_f64() as f32, rng.next_f64() as f32)
+                };
+                u.push(a);
+                v.push(c);
+            }
+        }
+        (u, v)
+    }
+
+    #[test]
+    fn fused_sampling_matches_grid_sample_in_values_and_gradients() {
+        let device = Device::flex().autodiff();
+        let maps = [map(3, 16, 8), map(4, 16, 8)];
+        let batch = LightMapBatch::new(&[&maps[0], &maps[1]], &device).unwrap();
+        let (u, v) = coordinates(2, 5);
+        let r: Vec<f32> = (0..u.len() * 3)
+            .map(|i| ((i * 37 % 23) as f32 - 11.0) / 7.0)
+            .collect();
+        let fused = sample_and_grads(bilinear::sample, &batch, &u, &v, &r);
+        let reference = sample_and_grads(bilinear::sample_reference, &batch, &u, &v, &r);
+        let close = |a: &[f32], b: &[f32], what: &str| {
+            assert_eq!(a.len(), b.len(), "{what}");
+            for (i, (x, y)) in a.iter().zip(b).enumerate() {
+                assert!(
+                    (x - y).abs() <= 1e-4 * (1.0 + y.abs()),
+                    "{what}[{i}]: {x} vs {y}"
+                );
+            }
+        };
+        close(&fused.0, &reference.0, "value");
+        // On texel edges the two may take the slope of either side; compare elsewhere.
+        let on_edge = |x: f32, size: f32| {
+            ((x * size + 0.5).fract()).min(1.0 - (x * size + 0.5).fract()) < 1e-4
+        };
+        let smooth: Vec<usize> = (0..u.len())
+            .filter(|&i| !on_edge(u[i], 16.0) && !on_edge(v[i], 8.0))
+            .collect();
+        assert!(smooth.len() > 500, "{} smooth points", smooth.len());
+        let pick = |g: &[f32]| smooth.iter().map(|&i| g[i]).collect::<Vec<_>>();
+        close(&pick(&fused.1), &pick(&reference.1), "d/du");
+        close(&pick(&fused.2), &pick(&reference.2), "d/dv");
+        // Without autodiff the same kernel runs.
+        let plain = LightMapBatch::new(&[&maps[0], &maps[1]], &Device::flex()).unwrap();
+        let flex = |x: &[f32]| Tensor::<1>::from_floats(x, &Device::flex()).reshape([2, 300, 1]);
+        let values = to_f32_vec(plain.lookup_uv(flex(&u), flex(&v)));
+        assert_eq!(values, fused.0);
+    }
+
+    #[test]
+    fn sampling_gradients_match_f64_central_differences() {
+        let device = Device::flex().autodiff();
+        let lm = map(9, 32, 8);
+        let batch = LightMapBatch::new(&[&lm], &device).unwrap();
+        let (u, v) = coordinates(1, 8);
+        let r: Vec<f32> = (0..u.len() * 3).map(|i| [0.3, -1.2, 0.7][i % 3]).collect();
+        let (_, du, dv) = sample_and_grads(bilinear::sample, &batch, &u, &v, &r);
+        // The padded map's bilinear interpolant in f64.
+        let (w, h) = (lm.width(), lm.height());
+        let padded = lm.padded();
+        let value = |u: f64, v: f64| -> f64 {
+            let x = (u * w as f64 + 0.5).clamp(0.0, (w + 1) as f64);
+            let y = (v * h as f64 + 0.5).clamp(0.0, (h + 1) as f64);
+            let (x0, y0) = ((x.floor() as usize).min(w), (y.floor() as usize).min(h));
+            let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+            let t = |yy: usize, xx: usize, c: usize| f64::from(padded[yy * (w + 2) + xx][c]);
+            (0..3)
+                .map(|c| {
+                    let top = t(y0, x0, c) * (1.0 - fx) + t(y0, x0 + 1, c) * fx;
+                    let bottom = t(y0 + 1, x0, c) * (1.0 - fx) + t(y0 + 1, x0 + 1, c) * fx;
+                    [0.3, -1.2, 0.7][c] * (top * (1.0 - fy) + bottom * fy)
+                })
+                .sum()
+        };
+        let step = 1e-5;
+        let mut checked = 0;
+        for i in 0..u.len() {
+            let (p, q) = (f64::from(u[i]), f64::from(v[i]));
+            let fd_u = (value(p + step, q) - value(p - step, q)) / (2.0 * step);
+            let fd_v = (value(p, q + step) - value(p, q - step)) / (2.0 * step);
+            // Skip kinks (texel edges) and the clamp's edge, where one-sided slopes differ.
+            let one_sided = (value(p + step, q) - value(p, q)) / step;
+            let one_sided_v = (value(p, q + step) - value(p, q)) / step;
+            if (one_sided - fd_u).abs() > 1e-3 * (1.0 + fd_u.abs())
+                || (one_sided_v - fd_v).abs() > 1e-3 * (1.0 + fd_v.abs())
+            {
+                continue;
+            }
+            for (got, want, what) in [(du[i], fd_u, "u"), (dv[i], fd_v, "v")] {
+                let got = f64::from(got);
+                assert!(
+                    (got - want).abs() <= 1e-3 * (1.0 + want.abs()),
+                    "d/d{what} at ({p}, {q}): {got} vs {want}"
+                );
+            }
+            checked += 1;
+        }
+        assert!(checked > 200, "only {checked} smooth points");
+    }
+
+    #[test]
+    fn sampling_extreme_coordinates_is_finite_or_nan_never_a_panic() {
+        let device = Device::flex().autodiff();
+        let lm = map(2, 16, 8);
+        let batch = LightMapBatch::new(&[&lm], &device).unwrap();
+        let u = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, 3e38, -3e38, 0.5];
+        let v = [0.5, 0.5, 0.5, 0.5, 0.5, f32::NAN];
+        let r = [1.0f32; 18];
+        let (values, du, dv) = sample_and_grads(bilinear::sample, &batch, &u, &v, &r);
+        for k in 0..6 {
+            let nan_in = u[k].is_nan() || v[k].is_nan();
+            for c in 0..3 {
+                assert_eq!(values[3 * k + c].is_nan(), nan_in, "point {k}: {values:?}");
+            }
+        }
+        // Clamped coordinates have no slope.
+        assert_eq!(&du[1..5], &[0.0; 4]);
+        assert!(dv[1..5].iter().all(|g| g.is_finite()));
     }
 
     #[test]
