@@ -1,4 +1,5 @@
-//! What the hand-written flex operations share: which path a device takes, and conversions
+//! What the hand-written flex operations (this crate's kernels and `volux-train`'s fused
+//! Adam) share: which path a device takes, and conversions
 //! between flex tensors and slices.
 //!
 //! Burn 0.22 picks the backend at run time from the device. A custom operation reaches flex's
@@ -17,7 +18,7 @@ use burn::tensor::{Device, DispatchTensor, Tensor, TensorData};
 use burn_dispatch::DispatchKindConversion;
 
 /// Where a custom operation runs on a device.
-pub(crate) enum Route {
+pub enum Route {
     /// Flex without autodiff: the fast kernel.
     Flex,
     /// Autodiff over flex with this checkpointing strategy: the fast kernel and its
@@ -27,7 +28,7 @@ pub(crate) enum Route {
     Other,
 }
 
-pub(crate) fn route(device: &Device) -> Route {
+pub fn route(device: &Device) -> Route {
     #[allow(unreachable_patterns)] // with only flex compiled in, `_` covers nothing
     match device.as_dispatch() {
         DispatchDevice::Flex(_) => Route::Flex,
@@ -40,7 +41,7 @@ pub(crate) fn route(device: &Device) -> Route {
 }
 
 /// A contiguous f32 view of a flex tensor (copied only if it is strided).
-pub(crate) fn contiguous(t: &FlexTensor) -> Cow<'_, [f32]> {
+pub fn contiguous(t: &FlexTensor) -> Cow<'_, [f32]> {
     match t.as_slice::<f32>() {
         Some(s) => Cow::Borrowed(s),
         None => Cow::Owned(t.to_contiguous().as_slice::<f32>().unwrap().to_vec()),
@@ -48,14 +49,14 @@ pub(crate) fn contiguous(t: &FlexTensor) -> Cow<'_, [f32]> {
 }
 
 /// A flex tensor owning `values` with `shape`.
-pub(crate) fn flex_tensor(values: Vec<f32>, shape: Vec<usize>) -> FlexTensor {
+pub fn flex_tensor(values: Vec<f32>, shape: Vec<usize>) -> FlexTensor {
     FlexTensor::from_data(TensorData::new(values, shape))
 }
 
 /// An autodiff flex tensor's inner flex tensor and its node guard, for the checkpointing
 /// strategy `C` of the device's route (generic over `C`, so that one function serves
 /// [`Route::Autodiff`] with either strategy).
-pub(crate) fn autodiff_parts<C, const D: usize>(t: Tensor<D>) -> (FlexTensor, NodeGuard)
+pub fn autodiff_parts<C, const D: usize>(t: Tensor<D>) -> (FlexTensor, NodeGuard)
 where
     C: CheckpointStrategy,
     DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,

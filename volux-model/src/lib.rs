@@ -22,7 +22,7 @@ pub mod convolution;
 pub mod discriminator;
 pub mod equalized;
 pub mod fir_filter;
-mod flex_extension;
+pub mod flex_extension;
 pub mod flops;
 pub mod fused_activation;
 pub mod generator;

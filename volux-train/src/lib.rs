@@ -18,6 +18,7 @@
 //! - [`sampling`]: latents from seeds, every layer of a sample, the sample grid;
 //!   [`animation`]: looping GIFs.
 
+pub mod adam;
 pub mod animation;
 pub mod bench;
 pub mod checkpoint;

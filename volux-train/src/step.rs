@@ -348,15 +348,18 @@ pub fn train_step(
         pairs(d, &fakes, Some(inputs.reals), &w, fade)
     {
         let real = real.expect("reals given");
-        let (real_logits, r1) = match inputs.r1 {
+        let (real_logits, fake_logits, r1) = match inputs.r1 {
             Some((gamma, interval)) if gamma > 0.0 => {
                 let (logits, penalty) =
                     profile::timed(ProfilePhase::R1, || lazy_r1(disc, real, gamma, interval));
-                (logits, Some(penalty))
+                (logits, disc.forward(fake), Some(penalty))
             }
-            _ => (disc.forward(real), None),
+            _ => {
+                let (real, fake) = disc.forward_pair(real, fake);
+                (real, fake, None)
+            }
         };
-        let l = discriminator_loss(real_logits, disc.forward(fake));
+        let l = discriminator_loss(real_logits, fake_logits);
         outcome.losses.insert(d_name, scalar(&l));
         let mut term = l;
         if let Some(r1) = r1 {

@@ -10,7 +10,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use burn::module::Module;
-use burn::optim::AdamConfig;
+use burn::optim::ModuleOptimizer;
 use burn::tensor::Device;
 use volux_data::batch::{BatchLoader, LightingTensorError};
 use volux_data::dataset::{DataError, Examples};
@@ -20,6 +20,7 @@ use volux_model::backend::{BackendError, BackendKind};
 use volux_model::generator::{Generator, GeneratorError};
 use volux_model::profile::{self, Phase as ProfilePhase};
 
+use crate::adam::FusedAdam;
 use crate::checkpoint::{self, CHECKPOINT_FORMAT, CheckpointError, Networks, TrainState};
 use crate::config::TrainConfig;
 use crate::fake_poses::FakePoses;
@@ -189,13 +190,7 @@ impl Trainer {
         let d = Discriminators::init(&config, &device);
         materialize(&d);
         let ema = g.valid();
-        let adam = || {
-            AdamConfig::new()
-                .with_beta_1(t.beta1 as f32)
-                .with_beta_2(t.beta2 as f32)
-                .with_epsilon(1e-8)
-                .init()
-        };
+        let adam = || ModuleOptimizer::from(FusedAdam::new(t.beta1 as f32, t.beta2 as f32, 1e-8));
         let mut nets = Networks {
             g,
             ema,
