@@ -26,18 +26,21 @@
 //! finite differences beside them.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
-use burn::backend::autodiff::checkpoint::strategy::{BalancedCheckpointing, NoCheckpointing};
+use burn::backend::autodiff::checkpoint::strategy::{
+    BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
+};
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::FlexTensor;
 use burn::backend::{Autodiff, Flex, GradientCheckpointingStrategy, TensorMetadata};
 use burn::tensor::module;
 use burn::tensor::ops::ConvOptions;
-use burn::tensor::{DType, Tensor};
+use burn::tensor::{DType, DispatchTensor, Tensor};
+use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
 use crate::equalized::conv_transpose_to;
-use crate::flex_extension::{Route, contiguous, flex_tensor, route};
+use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
 
 /// Stride and symmetric zero padding of a convolution.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -197,59 +200,49 @@ fn run(
             Tensor::from_primitive::<Flex>(apply(direction, &a, &w, shape))
         }
         Route::Autodiff(GradientCheckpointingStrategy::Disabled) => {
-            run_autodiff_plain(operand, weight, geometry, direction, in_hw)
+            run_autodiff::<NoCheckpointing>(operand, weight, geometry, direction, in_hw)
         }
         Route::Autodiff(GradientCheckpointingStrategy::Balanced) => {
-            run_autodiff_balanced(operand, weight, geometry, direction, in_hw)
+            run_autodiff::<BalancedCheckpointing>(operand, weight, geometry, direction, in_hw)
         }
         Route::Other => reference(operand, weight),
     }
 }
 
-/// The autodiff route for one checkpointing strategy (see `fused_activation`).
-macro_rules! run_autodiff {
-    ($name:ident, $strategy:ty) => {
-        fn $name(
-            operand: Tensor<4>,
-            weight: Tensor<4>,
-            geometry: ConvGeometry,
-            direction: Direction,
-            in_hw: [usize; 2],
-        ) -> Tensor<4> {
-            type B = Autodiff<Flex, $strategy>;
-            let (Ok(a), Ok(w)) = (
-                operand.try_into_primitive::<B>(),
-                weight.try_into_primitive::<B>(),
-            ) else {
-                unreachable!("an autodiff flex device holds autodiff flex tensors")
-            };
-            let (a, a_node) = a.into_parts();
-            let (w, w_node) = w.into_parts();
-            let shape = Shape::new(a.shape().as_slice(), w.shape().as_slice(), geometry, in_hw);
-            let out = apply(direction, &a, &w, shape);
-            let out = match ConvBackward
-                .prepare::<$strategy>([a_node, w_node])
-                .compute_bound()
-                .stateful()
-            {
-                OpsKind::Tracked(prep) => prep.finish(
-                    ConvState {
-                        operand: a,
-                        weight: w,
-                        shape,
-                        direction,
-                    },
-                    out,
-                ),
-                OpsKind::UnTracked(prep) => prep.finish(out),
-            };
-            Tensor::from_primitive::<B>(out)
-        }
+/// The autodiff route, for either checkpointing strategy `C`.
+fn run_autodiff<C>(
+    operand: Tensor<4>,
+    weight: Tensor<4>,
+    geometry: ConvGeometry,
+    direction: Direction,
+    in_hw: [usize; 2],
+) -> Tensor<4>
+where
+    C: CheckpointStrategy,
+    DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,
+{
+    let (a, a_node) = autodiff_parts::<C, 4>(operand);
+    let (w, w_node) = autodiff_parts::<C, 4>(weight);
+    let shape = Shape::new(a.shape().as_slice(), w.shape().as_slice(), geometry, in_hw);
+    let out = apply(direction, &a, &w, shape);
+    let out = match ConvBackward
+        .prepare::<C>([a_node, w_node])
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => prep.finish(
+            ConvState {
+                operand: a,
+                weight: w,
+                shape,
+                direction,
+            },
+            out,
+        ),
+        OpsKind::UnTracked(prep) => prep.finish(out),
     };
+    Tensor::from_primitive::<Autodiff<Flex, C>>(out)
 }
-
-run_autodiff!(run_autodiff_plain, NoCheckpointing);
-run_autodiff!(run_autodiff_balanced, BalancedCheckpointing);
 
 #[derive(Debug)]
 struct ConvBackward;

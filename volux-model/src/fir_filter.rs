@@ -25,18 +25,21 @@
 //! adjoint identity `<A x, y> = <x, A^T y>`.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
-use burn::backend::autodiff::checkpoint::strategy::{BalancedCheckpointing, NoCheckpointing};
+use burn::backend::autodiff::checkpoint::strategy::{
+    BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
+};
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::FlexTensor;
 use burn::backend::{Autodiff, Flex, TensorMetadata};
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
-use burn::tensor::{DType, Tensor};
+use burn::tensor::{DType, DispatchTensor, Tensor};
+use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
 use crate::equalized::conv_transpose_to;
-use crate::flex_extension::{Route, contiguous, flex_tensor, route};
+use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
 
 /// A separable filter with its zero padding and output stride.
 #[derive(Clone, Debug, PartialEq)]
@@ -154,49 +157,38 @@ fn run(x: Tensor<4>, fir: &Fir, direction: Direction, out_hw: [usize; 2]) -> Ten
             Tensor::from_primitive::<Flex>(kernel(&x, fir, direction, out_hw))
         }
         Route::Autodiff(burn::backend::GradientCheckpointingStrategy::Disabled) => {
-            run_autodiff_plain(x, fir, direction, out_hw)
+            run_autodiff::<NoCheckpointing>(x, fir, direction, out_hw)
         }
         Route::Autodiff(burn::backend::GradientCheckpointingStrategy::Balanced) => {
-            run_autodiff_balanced(x, fir, direction, out_hw)
+            run_autodiff::<BalancedCheckpointing>(x, fir, direction, out_hw)
         }
         Route::Other => reference(x),
     }
 }
 
-/// The autodiff route for one checkpointing strategy (see `fused_activation`).
-macro_rules! run_autodiff {
-    ($name:ident, $strategy:ty) => {
-        fn $name(x: Tensor<4>, fir: &Fir, direction: Direction, out_hw: [usize; 2]) -> Tensor<4> {
-            type B = Autodiff<Flex, $strategy>;
-            let Ok(x) = x.try_into_primitive::<B>() else {
-                unreachable!("an autodiff flex device holds autodiff flex tensors")
-            };
-            let (x, node) = x.into_parts();
-            let shape = x.shape().to_vec();
-            let in_hw = [shape[2], shape[3]];
-            let out = kernel(&x, fir, direction, out_hw);
-            let out = match FirBackward
-                .prepare::<$strategy>([node])
-                .compute_bound()
-                .stateful()
-            {
-                OpsKind::Tracked(prep) => prep.finish(
-                    FirState {
-                        fir: fir.clone(),
-                        direction,
-                        in_hw,
-                    },
-                    out,
-                ),
-                OpsKind::UnTracked(prep) => prep.finish(out),
-            };
-            Tensor::from_primitive::<B>(out)
-        }
+/// The autodiff route, for either checkpointing strategy `C`.
+fn run_autodiff<C>(x: Tensor<4>, fir: &Fir, direction: Direction, out_hw: [usize; 2]) -> Tensor<4>
+where
+    C: CheckpointStrategy,
+    DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,
+{
+    let (x, node) = autodiff_parts::<C, 4>(x);
+    let shape = x.shape().to_vec();
+    let in_hw = [shape[2], shape[3]];
+    let out = kernel(&x, fir, direction, out_hw);
+    let out = match FirBackward.prepare::<C>([node]).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => prep.finish(
+            FirState {
+                fir: fir.clone(),
+                direction,
+                in_hw,
+            },
+            out,
+        ),
+        OpsKind::UnTracked(prep) => prep.finish(out),
     };
+    Tensor::from_primitive::<Autodiff<Flex, C>>(out)
 }
-
-run_autodiff!(run_autodiff_plain, NoCheckpointing);
-run_autodiff!(run_autodiff_balanced, BalancedCheckpointing);
 
 #[derive(Debug)]
 struct FirBackward;

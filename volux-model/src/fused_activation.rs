@@ -19,15 +19,18 @@
 //! `dL/dbias = sum over batch and points of dL/dy_value`.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
-use burn::backend::autodiff::checkpoint::strategy::{BalancedCheckpointing, NoCheckpointing};
+use burn::backend::autodiff::checkpoint::strategy::{
+    BalancedCheckpointing, CheckpointStrategy, NoCheckpointing,
+};
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::FlexTensor;
 use burn::backend::{Autodiff, Flex, GradientCheckpointingStrategy, TensorMetadata};
-use burn::tensor::{DType, Tensor};
+use burn::tensor::{DType, DispatchTensor, Tensor};
+use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
-use crate::flex_extension::{Route, contiguous, flex_tensor, route};
+use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
 use crate::neiif::{SMOOTH_GAIN, smooth_lrelu, smooth_lrelu_parts};
 
 /// Rows of `o` channels per parallel task.
@@ -57,10 +60,10 @@ pub fn activate(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3> {
             Tensor::from_primitive::<Flex>(forward_flex(&y, &bias, tangents))
         }
         Route::Autodiff(GradientCheckpointingStrategy::Disabled) => {
-            activate_autodiff_plain(y, bias, tangents)
+            activate_autodiff::<NoCheckpointing>(y, bias, tangents)
         }
         Route::Autodiff(GradientCheckpointingStrategy::Balanced) => {
-            activate_autodiff_balanced(y, bias, tangents)
+            activate_autodiff::<BalancedCheckpointing>(y, bias, tangents)
         }
         Route::Other => activate_reference(y, bias, tangents),
     }
@@ -80,34 +83,25 @@ pub fn activate_reference(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Ten
     Tensor::cat(vec![value, t.reshape([b, tangents * p, o])], 1)
 }
 
-/// The autodiff route for one checkpointing strategy (Burn's conversion to a concrete
-/// autodiff primitive is implemented per strategy, not generically, hence a macro).
-macro_rules! activate_autodiff {
-    ($name:ident, $strategy:ty) => {
-        fn $name(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3> {
-            type B = Autodiff<Flex, $strategy>;
-            let (Ok(y), Ok(bias)) = (y.try_into_primitive::<B>(), bias.try_into_primitive::<B>())
-            else {
-                unreachable!("an autodiff flex device holds autodiff flex tensors")
-            };
-            let (y, y_node) = y.into_parts();
-            let (bias, bias_node) = bias.into_parts();
-            let out = forward_flex(&y, &bias, tangents);
-            let out = match ActivateBackward
-                .prepare::<$strategy>([y_node, bias_node])
-                .compute_bound()
-                .stateful()
-            {
-                OpsKind::Tracked(prep) => prep.finish(ActivateState { y, bias, tangents }, out),
-                OpsKind::UnTracked(prep) => prep.finish(out),
-            };
-            Tensor::from_primitive::<B>(out)
-        }
+/// The autodiff route, for either checkpointing strategy `C`.
+fn activate_autodiff<C>(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3>
+where
+    C: CheckpointStrategy,
+    DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,
+{
+    let (y, y_node) = autodiff_parts::<C, 3>(y);
+    let (bias, bias_node) = autodiff_parts::<C, 1>(bias);
+    let out = forward_flex(&y, &bias, tangents);
+    let out = match ActivateBackward
+        .prepare::<C>([y_node, bias_node])
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => prep.finish(ActivateState { y, bias, tangents }, out),
+        OpsKind::UnTracked(prep) => prep.finish(out),
     };
+    Tensor::from_primitive::<Autodiff<Flex, C>>(out)
 }
-
-activate_autodiff!(activate_autodiff_plain, NoCheckpointing);
-activate_autodiff!(activate_autodiff_balanced, BalancedCheckpointing);
 
 #[derive(Debug)]
 struct ActivateBackward;
