@@ -192,7 +192,8 @@ pub struct BatchLoader<E> {
 }
 
 impl<E: Send + 'static> BatchLoader<E> {
-    /// `make(i)` builds batch `i`; it should be a pure function of `i` (it may use rayon).
+    /// `make(i)` builds batch `i`; it should be a pure function of `i`. It runs in a rayon pool
+    /// of one thread of its own, so its parallel loops leave the global pool to the consumer.
     pub fn spawn(
         start: u64,
         prefetch: usize,
@@ -202,12 +203,25 @@ impl<E: Send + 'static> BatchLoader<E> {
         let worker = std::thread::Builder::new()
             .name("volux-batches".into())
             .spawn(move || {
-                for i in start.. {
-                    let batch = make(i);
-                    let failed = batch.is_err();
-                    if sender.send(batch).is_err() || failed {
-                        return;
+                let run = move || {
+                    for i in start.. {
+                        let batch = make(i);
+                        let failed = batch.is_err();
+                        if sender.send(batch).is_err() || failed {
+                            return;
+                        }
                     }
+                };
+                // A pool of its own with one thread: the batches' parallel loops (rendering,
+                // look-ups) then never queue work on the global pool whose threads run the
+                // training step's kernels, which would otherwise wait behind them.
+                match rayon::ThreadPoolBuilder::new()
+                    .num_threads(1)
+                    .thread_name(|_| "volux-batches-pool".into())
+                    .build()
+                {
+                    Ok(pool) => pool.install(run),
+                    Err(_) => run(),
                 }
             })
             .expect("spawning the batch thread");
@@ -253,6 +267,19 @@ mod tests {
             mask: vec![value; n],
             diffuse: vec![[2.0; 3]; n],
             specular: vec![[3.0; 3]; n],
+        }
+    }
+
+    #[test]
+    fn batches_are_made_outside_the_global_rayon_pool() {
+        let mut loader = BatchLoader::<String>::spawn(0, 1, |i| {
+            // Inside the loader's own pool: one thread, not the global pool's.
+            assert_eq!(rayon::current_num_threads(), 1);
+            assert!(rayon::current_thread_index().is_some());
+            Ok(Batch::collate(i, &[sample(4, i as f32), sample(4, 1.0)]))
+        });
+        for _ in 0..2 {
+            loader.next_batch().expect("a batch").expect("made");
         }
     }
 
