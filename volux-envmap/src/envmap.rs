@@ -22,12 +22,19 @@ pub struct EnvMap {
     texels: Vec<Rgb>,
 }
 
+/// The brightest texel value a map may hold. The shipped maps peak at 3.3e4 (an unclipped
+/// sun), and a sun in absolute units is about 1.6e9 cd/m^2; above 1e15 the light maps, the
+/// shading products and the look-up's gradients (texel differences times the map width,
+/// squared by Adam) come within reach of f32's 3.4e38, so such a value is refused by name
+/// rather than turned into infinite shading.
+pub const MAX_RADIANCE: f32 = 1e15;
+
 /// Negative texels down to this are compression noise, clamped with only a debug message.
 const NEGATIVE_NOISE: f32 = 0.01;
 
 impl EnvMap {
-    /// A map from row-major texels. Errors on a size mismatch, an empty or non-2:1 map, and
-    /// NaN/Inf values; negative values are clamped to 0 and counted in a `tracing` warning
+    /// A map from row-major texels. Errors on a size mismatch, an empty or non-2:1 map, NaN/Inf
+    /// values and values above [`MAX_RADIANCE`]; negative values are clamped to 0 and counted in a `tracing` warning
     /// (a debug message when none is below -0.01, compression noise around black).
     pub fn new(width: usize, height: usize, texels: Vec<Rgb>) -> Result<Self, EnvMapError> {
         Self::validated(width, height, texels, IN_MEMORY)
@@ -52,6 +59,19 @@ impl EnvMap {
                 count: stats.non_finite,
                 x: first % width,
                 y: first / width,
+            });
+        }
+        if let Some(first) = texels
+            .iter()
+            .position(|c| c.iter().any(|v| *v > MAX_RADIANCE))
+        {
+            let value = texels[first].iter().copied().fold(f32::MIN, f32::max);
+            return Err(EnvMapError::TooBright {
+                origin: origin.to_string(),
+                value,
+                x: first % width,
+                y: first / width,
+                max: MAX_RADIANCE,
             });
         }
         if stats.negative > 0 {
@@ -346,6 +366,22 @@ mod tests {
             "{msg}"
         );
         assert!(msg.contains("x=1, y=1"), "{msg}");
+    }
+
+    #[test]
+    fn refuses_radiance_that_would_overflow_shading_by_name() {
+        let mut t = vec![[1.0f32; 3]; 32];
+        t[13] = [0.5, 3e38, 2.0];
+        let e = EnvMap::validated(8, 4, t.clone(), "hot.exr").unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            matches!(e, EnvMapError::TooBright { x: 5, y: 1, .. }),
+            "{msg}"
+        );
+        assert!(msg.contains("hot.exr") && msg.contains("3e38"), "{msg}");
+        // The limit itself, and a very bright but real sun, are accepted.
+        t[13] = [MAX_RADIANCE, 1.6e9, 1.0];
+        assert!(EnvMap::validated(8, 4, t, "sun.exr").is_ok());
     }
 
     #[test]

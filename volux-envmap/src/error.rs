@@ -58,6 +58,18 @@ pub enum EnvMapError {
         expected: usize,
         actual: usize,
     },
+    /// A texel brighter than [`crate::envmap::MAX_RADIANCE`]: finite, but shading with it would
+    /// overflow f32 (infinite light maps, black relit images).
+    #[error(
+        "{origin}: texel x={x}, y={y} has radiance {value:e}, above the largest accepted ({max:e}; real maps, suns included, are far below): is the file scaled or corrupt?"
+    )]
+    TooBright {
+        origin: String,
+        value: f32,
+        x: usize,
+        y: usize,
+        max: f32,
+    },
     /// NaN or infinite texel values: there is no sensible light to take from them.
     #[error(
         "{origin}: {count} texel values are NaN or infinite (first at texel x={x}, y={y}); fix or re-export the map"
