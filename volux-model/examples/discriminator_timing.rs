@@ -5,25 +5,12 @@
 //! `cargo run -p volux-model --example discriminator_timing [--release] -- [resolution]
 //! [batch] [repeats]` (defaults 64, 8, 5); the small preset with 3 input channels.
 
-use std::time::Instant;
-
 use burn::tensor::{Device, Distribution, Tensor};
 use volux_model::backend::to_f32_vec;
 use volux_model::discriminator::{DiscriminatorConfig, r1_penalty};
-
-/// Median wall time in milliseconds of `repeats` runs of `f`, after one warm-up run.
-fn median_ms(repeats: usize, mut f: impl FnMut()) -> f64 {
-    f();
-    let mut times: Vec<f64> = (0..repeats)
-        .map(|_| {
-            let start = Instant::now();
-            f();
-            start.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    times.sort_by(f64::total_cmp);
-    times[times.len() / 2]
-}
+#[path = "common/timing.rs"]
+mod timing;
+use timing::median_ms;
 
 fn main() {
     let args: Vec<usize> = std::env::args()

@@ -5,27 +5,16 @@
 //! `cargo run -p volux-model --example neiif_timing [--release] -- [points] [batch] [repeats]`
 //! (defaults 8192 points per batch element, i.e. one of the renderer's two passes at 8 + 8
 //! samples on 32x32 rays, batch 4, 5 repeats); the `small` preset's field with the
-//! quickstart's 4 octaves and sphere prior.
-
-use std::time::Instant;
+//! quickstart's 4 octaves and sphere prior. This process keeps glibc's default allocator,
+//! unlike the `volux` binary (`src/allocator.rs`): page faults on fresh allocations were a fifth
+//! of a profile of it, so compare its figures with each other, not with `volux train bench`.
 
 use burn::tensor::{Device, Distribution, Tensor};
 use volux_model::backend::to_f32_vec;
 use volux_model::neiif::{FieldWants, NeiifConfig};
-
-/// Median wall time in milliseconds of `repeats` runs of `f`, after one warm-up run.
-fn median_ms(repeats: usize, mut f: impl FnMut()) -> f64 {
-    f();
-    let mut times: Vec<f64> = (0..repeats)
-        .map(|_| {
-            let start = Instant::now();
-            f();
-            start.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    times.sort_by(f64::total_cmp);
-    times[times.len() / 2]
-}
+#[path = "common/timing.rs"]
+mod timing;
+use timing::median_ms;
 
 fn main() {
     let args: Vec<usize> = std::env::args()

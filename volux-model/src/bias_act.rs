@@ -38,11 +38,6 @@ pub const LRELU_SLOPE: f64 = 0.2;
 /// Elements per parallel task (whole channel planes are never split).
 const TASK_ELEMENTS: usize = 1 << 14;
 
-/// StyleGAN2's leaky ReLU with its gain `sqrt(2)` (unit variance), in tensor ops.
-pub fn lrelu_gain<const D: usize>(x: Tensor<D>) -> Tensor<D> {
-    activation::leaky_relu(x, LRELU_SLOPE).mul_scalar(std::f64::consts::SQRT_2)
-}
-
 /// `gain * lrelu(x + bias)` with one bias per channel (dimension 1) of `x: [batch, channels,
 /// ..]`; `gain > 0`.
 pub fn bias_lrelu<const D: usize>(x: Tensor<D>, bias: Option<Tensor<1>>, gain: f64) -> Tensor<D> {

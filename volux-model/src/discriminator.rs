@@ -173,7 +173,7 @@ struct Trace {
 }
 
 impl DiscriminatorBlock {
-    /// StyleGAN2's block: `y = (skip(x) + lrelu_gain(conv1(..))) / sqrt(2)`, the `1 / sqrt(2)`
+    /// StyleGAN2's block: `y = (skip(x) + sqrt(2) lrelu(conv1(..))) / sqrt(2)`, the `1 / sqrt(2)`
     /// folded into the skip convolution's weights and the second activation's gain
     /// (`sqrt(2) / sqrt(2) = 1`), as StyleGAN2 passes `gain = sqrt(0.5)` to both.
     fn forward_traced(&self, x: Tensor<4>) -> (Tensor<4>, BlockTrace) {
@@ -394,6 +394,7 @@ pub fn minibatch_std_input_gradient(
 mod tests {
     use super::*;
     use crate::backend::to_f32_vec;
+    use crate::bias_act::bias_lrelu_reference;
     use crate::test_support::{Reseed, normals};
     use burn::module::Param;
     use burn::tensor::{DType, Gradients, TensorData};
@@ -699,6 +700,44 @@ mod tests {
                 worst <= 1e-3 * scale.max(1e-6),
                 "{what}: {worst} (scale {scale})"
             );
+        }
+    }
+
+    /// The fused path (bias and activation in one op, the block's `1 / sqrt(2)` folded into
+    /// the skip weights and the second activation's gain) against StyleGAN2's formula written
+    /// with separate ops: `lrelu` with gain sqrt(2) after every biased convolution and fully
+    /// connected layer, `(skip + main) / sqrt(2)` per block.
+    #[test]
+    fn fused_forward_equals_stylegan2s_formula_in_separate_ops() {
+        let device = Device::flex();
+        let d = tiny(&device, 3, DType::F32);
+        let mut rng = SplitMix64::new(8);
+        let x = tensor(
+            normals(&mut rng, 2 * 3 * 16 * 16),
+            [2, 3, 16, 16],
+            &device,
+            DType::F32,
+        );
+        let act = |t: Tensor<4>| bias_lrelu_reference(t, None, SQRT_2);
+        let mut h = act(d.from_rgb.forward(x.clone()));
+        for block in &d.blocks {
+            let skip = block
+                .skip
+                .forward_strided(blur_downsample2(h.clone()), 1, 0);
+            let main = act(block
+                .conv1
+                .forward_strided(blur(act(block.conv0.forward(h)), 2), 2, 0));
+            h = (skip + main).mul_scalar(FRAC_1_SQRT_2);
+        }
+        let c = act(d
+            .conv
+            .forward(minibatch_std(h, d.mbstd_group, d.mbstd_channels)));
+        let [_, ch, hh, ww] = c.dims();
+        let fc = bias_lrelu_reference(d.fc.forward(c.reshape([2, ch * hh * ww])), None, SQRT_2);
+        let want = to_f64_vec(d.out.forward(fc));
+        let got = to_f64_vec(d.forward(x));
+        for (g, w) in got.iter().zip(&want) {
+            assert!((g - w).abs() <= 1e-5 * (1.0 + w.abs()), "{g} vs {w}");
         }
     }
 

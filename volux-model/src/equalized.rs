@@ -82,7 +82,7 @@ impl EqualizedLinear {
 
     /// `[batch, d_input] -> [batch, d_output]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        let y = x.matmul(self.effective_weight().transpose());
+        let y = self.linear(x);
         match self.effective_bias() {
             Some(b) => y + b.unsqueeze_dim(0),
             None => y,
@@ -92,8 +92,12 @@ impl EqualizedLinear {
     /// [`Self::forward`] followed by StyleGAN2's leaky ReLU with `gain`, the bias, activation
     /// and gain as one fused operation ([`bias_act::bias_lrelu`]).
     pub fn forward_lrelu(&self, x: Tensor<2>, gain: f64) -> Tensor<2> {
-        let y = x.matmul(self.effective_weight().transpose());
-        bias_act::bias_lrelu(y, self.effective_bias(), gain)
+        bias_act::bias_lrelu(self.linear(x), self.effective_bias(), gain)
+    }
+
+    /// `x W^T`, without bias.
+    fn linear(&self, x: Tensor<2>) -> Tensor<2> {
+        x.matmul(self.effective_weight().transpose())
     }
 }
 
@@ -199,11 +203,7 @@ impl EqualizedConv2d {
         padding: usize,
         gain: f64,
     ) -> Tensor<4> {
-        let y = convolution::conv2d(
-            x,
-            self.scaled_weight(gain),
-            ConvGeometry::new(stride, padding),
-        );
+        let y = self.convolve(x, stride, padding, gain);
         match self.effective_bias() {
             Some(b) => {
                 let o = b.dims()[0];
@@ -228,12 +228,17 @@ impl EqualizedConv2d {
         padding: usize,
         gain: f64,
     ) -> Tensor<4> {
-        let y = convolution::conv2d(
-            x,
-            self.effective_weight(),
-            ConvGeometry::new(stride, padding),
-        );
+        let y = self.convolve(x, stride, padding, 1.0);
         bias_act::bias_lrelu(y, self.effective_bias(), gain)
+    }
+
+    /// The linear part with the weights times `gain`, without bias.
+    fn convolve(&self, x: Tensor<4>, stride: usize, padding: usize, gain: f64) -> Tensor<4> {
+        convolution::conv2d(
+            x,
+            self.scaled_weight(gain),
+            ConvGeometry::new(stride, padding),
+        )
     }
 
     /// The effective weight times `gain` (no operation for a gain of 1).
