@@ -564,7 +564,7 @@ fn train_bench_writes_a_per_phase_table_for_stage_2() {
     let written = std::fs::read_to_string(&table).unwrap();
     for row in [
         "mapping",
-        "NeIIF field + tangents",
+        "NeIIF field + normals",
         "relighting net",
         "D_P forward",
         "generator backward",

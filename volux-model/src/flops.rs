@@ -74,15 +74,16 @@ fn modulation(w_dim: usize, d_in: usize, d_out: usize, batch: usize) -> f64 {
 }
 
 /// One query of the NeIIF at `points` points of each of `batch` elements: values through
-/// every layer it needs, the three tangents through layers 1 to the density layer (and the
-/// density head) when normals are wanted, the head when appearance is.
+/// every layer it needs; when normals are wanted, the reverse sweep's product with each
+/// transposed weight of layers 1 to the density layer (the head's weight is the sweep's
+/// start, so the head costs nothing more); the head when appearance is.
 pub fn field(c: &NeiifConfig, batch: usize, points: usize, wants: FieldWants) -> f64 {
     let n = batch * points;
     let encoded = PositionalEncodingConfig::new()
         .with_frequencies(c.frequencies)
         .init()
         .output_dim();
-    let tangents = if wants.normals { 4 } else { 1 };
+    let sweep = if wants.normals { 2 } else { 1 };
     let last = if wants.appearance {
         c.layers
     } else {
@@ -91,11 +92,11 @@ pub fn field(c: &NeiifConfig, batch: usize, points: usize, wants: FieldWants) ->
     let mut total = 0.0;
     for i in 0..last {
         let d_in = if i == 0 { encoded } else { c.width };
-        let copies = if i < c.density_layer { tangents } else { 1 };
+        let copies = if i < c.density_layer { sweep } else { 1 };
         total += modulation(c.w_dim, d_in, c.width, batch);
         total += copies as f64 * matmul(n, c.width, d_in);
     }
-    total += tangents as f64 * matmul(n, 1, c.width);
+    total += matmul(n, 1, c.width);
     if wants.appearance {
         total += matmul(n, c.head_width, c.width) + matmul(n, 3 + c.specular_lobes, c.head_width);
     }
@@ -365,7 +366,7 @@ mod tests {
     }
 
     #[test]
-    fn field_counts_tangents_through_the_density_layer() {
+    fn field_counts_the_reverse_sweep_through_the_density_layer() {
         let c = NeiifConfig::new()
             .with_w_dim(2)
             .with_width(4)
@@ -380,9 +381,9 @@ mod tests {
             + m(4.0, 4.0) + 2.0 * 10.0 * 4.0 * 4.0 // layer 2
             + 2.0 * 10.0 * 4.0; // density head
         assert_eq!(field(&c, 1, 10, FieldWants::DENSITY), density_only);
-        let with_normals = m(9.0, 4.0) + 4.0 * 2.0 * 10.0 * 36.0
-            + m(4.0, 4.0) + 4.0 * 2.0 * 10.0 * 16.0
-            + 4.0 * 2.0 * 10.0 * 4.0
+        let with_normals = m(9.0, 4.0) + 2.0 * 2.0 * 10.0 * 36.0
+            + m(4.0, 4.0) + 2.0 * 2.0 * 10.0 * 16.0
+            + 2.0 * 10.0 * 4.0
             + m(4.0, 4.0) + 2.0 * 10.0 * 16.0 // layer 3
             + 2.0 * 10.0 * 5.0 * 4.0 + 2.0 * 10.0 * 4.0 * 5.0; // head
         assert_eq!(field(&c, 1, 10, FieldWants::ALL), with_normals);

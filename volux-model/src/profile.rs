@@ -27,7 +27,7 @@ use crate::presets::DiscriminatorRole;
 pub enum Phase {
     /// `z -> w`.
     Mapping,
-    /// The NeIIF at every composited sample (both passes), forward-mode tangents included.
+    /// The NeIIF at every composited sample (both passes), the normals' reverse sweep included.
     Field,
     /// The density-only passes that place the importance samples (`crate::proposal`).
     Proposal,
@@ -57,7 +57,7 @@ impl Phase {
     pub fn label(self) -> &'static str {
         match self {
             Phase::Mapping => "mapping",
-            Phase::Field => "NeIIF field + tangents",
+            Phase::Field => "NeIIF field + normals",
             Phase::Proposal => "density-only proposal",
             Phase::Compositing => "compositing + light look-ups",
             Phase::Upsampler => "upsampler",

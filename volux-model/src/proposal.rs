@@ -1,10 +1,10 @@
 //! Density-only proposal passes: where the composited samples go, at the price of density
 //! alone.
 //!
-//! EG3D evaluates its stratified samples with every output (tangents for the normals, the
+//! EG3D evaluates its stratified samples with every output (the gradient for the normals, the
 //! appearance head) and composites them, so each sample that only serves to find the surface
 //! costs as much as one that shades it. Here the samples that place the importance samples
-//! ask the field for its density only (layers 1 to the density layer, no tangents, no head,
+//! ask the field for its density only (layers 1 to the density layer, no gradient sweep, no head,
 //! no autodiff: [`Field::density`]), about a fifth of a full query in the forward pass and
 //! nothing in the backward one, so there can be many of them:
 //!

@@ -12,7 +12,7 @@
 //! depth order). With `proposal > 0` the importance samples are placed by density-only
 //! passes instead ([`crate::proposal`]), whose samples join the compositing weights and lend
 //! them to the nearest full sample's values. What is not asked for is not computed: no light-map look-ups without shading, no
-//! tangent propagation without normals or shading, no field head without albedo, features or
+//! density-gradient sweep without normals or shading, no field head without albedo, features or
 //! shading. Like EG3D's renderer this file knows the field only through [`Field`].
 
 use burn::config::Config;
