@@ -1,25 +1,18 @@
-//! The NeIIF's activation with its forward-mode tangents as one operation with a hand-written
-//! backward pass.
+//! The NeIIF's activation as one operation with a hand-written backward pass.
 //!
-//! A modulated layer's output holds values and tangents stacked along the points,
-//! `y: [batch, (1 + k) p, o]` (rows `0..p` the pre-activations without bias, rows
-//! `(1 + j) p..(2 + j) p` tangent `j` of each point). The operation gives
-//! `[a(z); t_1 a'(z); ...; t_k a'(z)]` with `z = y_value + bias` and `a` the smooth activation
-//! [`crate::neiif::smooth_lrelu`]. Written with tensor ops that is about 20 elementwise passes
-//! over `[batch, p, o]` tensors, each recorded by autodiff and each with its own backward
-//! passes; here it is one pass forward and one backward, which is what makes the NeIIF fast on
-//! the CPU.
-//!
-//! [`pullback`] is the activation's step in a reverse sweep, `u a'(z)`, which the NeIIF's
-//! normals are made of.
+//! A modulated layer's output `y: [batch, p, o]` (pre-activations without bias) becomes
+//! `a(z)` with `z = y + bias` and `a` the smooth activation [`crate::neiif::smooth_lrelu`].
+//! Written with tensor ops that is about ten elementwise passes over `[batch, p, o]` tensors,
+//! each recorded by autodiff and each with its own backward passes; here it is one pass
+//! forward and one backward. [`pullback`] is the activation's step in the reverse sweep that
+//! gives the normals, `u a'(z)`.
 //!
 //! On the `flex` backend (with or without autodiff) the fused kernels run; on any other backend
 //! [`activate_reference`], the same function in plain tensor ops, does. Both are tested against
 //! each other and against f64 finite differences.
 //!
-//! Backward, with `s = sigmoid(z)`, `a' = g (0.2 + 0.8 s)` and `a'' = 0.8 g s (1 - s)`:
-//! `dL/dy_value = G_value a'(z) + a''(z) sum_j G_j t_j`, `dL/dt_j = G_j a'(z)`,
-//! `dL/dbias = sum over batch and points of dL/dy_value`.
+//! Backward, with `a' = g (0.2 + 0.8 sigmoid(z))`: `dL/dy = G a'(z)`,
+//! `dL/dbias = sum over batch and points of dL/dy`.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::{
@@ -34,23 +27,17 @@ use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
 use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
-use crate::neiif::{SMOOTH_GAIN, smooth_lrelu, smooth_lrelu_parts};
+use crate::neiif::{SMOOTH_GAIN, smooth_lrelu};
 
 /// Rows of `o` channels per parallel task.
 const ROWS_PER_TASK: usize = 256;
 
-/// The activation of stacked values and `tangents` tangents (see the module documentation):
-/// `y: [batch, (1 + tangents) p, o]`, `bias: [o]`, output of `y`'s shape.
-pub fn activate(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3> {
-    let [_, rows, o] = y.dims();
-    assert_eq!(
-        rows % (1 + tangents),
-        0,
-        "rows must stack 1 + {tangents} blocks"
-    );
+/// `a(y + bias)` for `y: [batch, p, o]` and `bias: [o]` (see the module documentation).
+pub fn activate(y: Tensor<3>, bias: Tensor<1>) -> Tensor<3> {
+    let o = y.dims()[2];
     assert_eq!(bias.dims(), [o], "one bias per channel");
     if y.dtype() != DType::F32 || bias.dtype() != DType::F32 {
-        return activate_reference(y, bias, tangents);
+        return activate_reference(y, bias);
     }
     match route(&y.device()) {
         Route::Flex => {
@@ -60,47 +47,39 @@ pub fn activate(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3> {
             ) else {
                 unreachable!("a flex device holds flex tensors")
             };
-            Tensor::from_primitive::<Flex>(forward_flex(&y, &bias, tangents))
+            Tensor::from_primitive::<Flex>(forward_flex(&y, &bias))
         }
         Route::Autodiff(GradientCheckpointingStrategy::Disabled) => {
-            activate_autodiff::<NoCheckpointing>(y, bias, tangents)
+            activate_autodiff::<NoCheckpointing>(y, bias)
         }
         Route::Autodiff(GradientCheckpointingStrategy::Balanced) => {
-            activate_autodiff::<BalancedCheckpointing>(y, bias, tangents)
+            activate_autodiff::<BalancedCheckpointing>(y, bias)
         }
-        Route::Other => activate_reference(y, bias, tangents),
+        Route::Other => activate_reference(y, bias),
     }
 }
 
 /// The same in plain tensor ops: the reference, and what backends other than flex run.
-pub fn activate_reference(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3> {
-    let [b, rows, o] = y.dims();
-    let p = rows / (1 + tangents);
-    let z = y.clone().narrow(1, 0, p) + bias.reshape([1, 1, o]);
-    if tangents == 0 {
-        return smooth_lrelu(z);
-    }
-    let (value, derivative) = smooth_lrelu_parts(z, true);
-    let derivative = derivative.expect("asked").reshape([b, 1, p, o]);
-    let t = y.narrow(1, p, tangents * p).reshape([b, tangents, p, o]) * derivative;
-    Tensor::cat(vec![value, t.reshape([b, tangents * p, o])], 1)
+pub fn activate_reference(y: Tensor<3>, bias: Tensor<1>) -> Tensor<3> {
+    let o = y.dims()[2];
+    smooth_lrelu(y + bias.reshape([1, 1, o]))
 }
 
 /// The autodiff route, for either checkpointing strategy `C`.
-fn activate_autodiff<C>(y: Tensor<3>, bias: Tensor<1>, tangents: usize) -> Tensor<3>
+fn activate_autodiff<C>(y: Tensor<3>, bias: Tensor<1>) -> Tensor<3>
 where
     C: CheckpointStrategy,
     DispatchTensor: DispatchKindConversion<Autodiff<Flex, C>>,
 {
     let (y, y_node) = autodiff_parts::<C, 3>(y);
     let (bias, bias_node) = autodiff_parts::<C, 1>(bias);
-    let out = forward_flex(&y, &bias, tangents);
+    let out = forward_flex(&y, &bias);
     let out = match ActivateBackward
         .prepare::<C>([y_node, bias_node])
         .compute_bound()
         .stateful()
     {
-        OpsKind::Tracked(prep) => prep.finish(ActivateState { y, bias, tangents }, out),
+        OpsKind::Tracked(prep) => prep.finish(ActivateState { y, bias }, out),
         OpsKind::UnTracked(prep) => prep.finish(out),
     };
     Tensor::from_primitive::<Autodiff<Flex, C>>(out)
@@ -113,7 +92,6 @@ struct ActivateBackward;
 struct ActivateState {
     y: FlexTensor,
     bias: FlexTensor,
-    tangents: usize,
 }
 
 impl Backward<Flex, 2> for ActivateBackward {
@@ -126,7 +104,7 @@ impl Backward<Flex, 2> for ActivateBackward {
             return;
         }
         let state = ops.state;
-        let (grad_y, grad_bias) = backward_flex(&state.y, &state.bias, &grad, state.tangents);
+        let (grad_y, grad_bias) = backward_flex(&state.y, &state.bias, &grad);
         if let Some(node) = bias_node {
             grads.register::<Flex>(node.id, grad_bias);
         }
@@ -134,26 +112,6 @@ impl Backward<Flex, 2> for ActivateBackward {
             grads.register::<Flex>(node.id, grad_y);
         }
     }
-}
-
-/// Splits `out: [batch, (1 + k) p, o]` into tasks of up to [`ROWS_PER_TASK`] points: each task
-/// is the flat offset of its value rows and the mutable value and tangent rows of those points.
-fn tasks(out: &mut [f32], groups: usize, p: usize, o: usize) -> Vec<(usize, Vec<&mut [f32]>)> {
-    let mut tasks = Vec::new();
-    for (bi, batch) in out.chunks_mut(groups * p * o).enumerate() {
-        let mut blocks: Vec<_> = batch
-            .chunks_mut(p * o)
-            .map(|block| block.chunks_mut(ROWS_PER_TASK * o))
-            .collect();
-        for chunk in 0..p.div_ceil(ROWS_PER_TASK) {
-            let parts: Vec<&mut [f32]> = blocks
-                .iter_mut()
-                .map(|b| b.next().expect("blocks have equal length"))
-                .collect();
-            tasks.push(((bi * groups * p + chunk * ROWS_PER_TASK) * o, parts));
-        }
-    }
-    tasks
 }
 
 /// `exp(x)` for `x <= 0` without a library call, so that loops over it vectorise: Cephes'
@@ -218,12 +176,9 @@ pub(crate) fn parts(z: f32) -> (f32, f32, f32) {
     (value, first, second)
 }
 
-/// Runs `kernel` compiled for AVX2 and FMA when the CPU has them (the channel loops then
-/// vectorise eight wide), else compiled for the baseline target.
+/// Runs `kernel(args: $args_ty) -> Vec<f32>` compiled for AVX2 and FMA when the CPU has them
+/// (the channel loops then vectorise eight wide), else compiled for the baseline target.
 macro_rules! dispatch_simd {
-    ($kernel:ident, $args:expr) => {
-        dispatch_simd!($kernel, $args, KernelArgs<'_, '_>)
-    };
     ($kernel:ident, $args:expr, $args_ty:ty) => {{
         let args: $args_ty = $args;
         #[cfg(target_arch = "x86_64")]
@@ -246,47 +201,31 @@ macro_rules! dispatch_simd {
     }};
 }
 
-/// One parallel task of [`forward_flex`] or [`backward_flex`]: the flat offset of its value
-/// rows, its output rows (value block, then one block per tangent) and the inputs.
-struct KernelArgs<'a, 'b> {
+/// One parallel task of [`forward_flex`] or [`backward_flex`]: its rows of the output, the
+/// flat offset of those rows in the inputs, and the inputs.
+struct KernelArgs<'a> {
     offset: usize,
-    out: &'b mut [&'a mut [f32]],
-    y: &'b [f32],
-    grad: &'b [f32],
-    bias: &'b [f32],
-    p: usize,
-    o: usize,
+    out: &'a mut [f32],
+    y: &'a [f32],
+    grad: &'a [f32],
+    bias: &'a [f32],
 }
 
 /// The forward task; returns nothing (an empty vector).
 #[inline(always)]
-fn forward_task(args: KernelArgs<'_, '_>) -> Vec<f32> {
+fn forward_task(args: KernelArgs<'_>) -> Vec<f32> {
     let KernelArgs {
         offset,
         out,
         y,
         bias,
-        p,
-        o,
         ..
     } = args;
-    let (value_out, tangents_out) = out.split_first_mut().expect("a value block");
-    let mut first = vec![0.0f32; o];
-    for (r, value_row) in value_out.chunks_exact_mut(o).enumerate() {
+    let o = bias.len();
+    for (r, row) in out.chunks_exact_mut(o).enumerate() {
         let at = offset + r * o;
-        let y_row = &y[at..at + o];
-        for (((v, d), yv), b) in value_row.iter_mut().zip(&mut first).zip(y_row).zip(bias) {
-            let (value, first, _) = parts(yv + b);
-            *v = value;
-            *d = first;
-        }
-        // Row by row, so that this loop vectorises.
-        for (j, t_out) in tangents_out.iter_mut().enumerate() {
-            let t_at = at + (1 + j) * p * o;
-            let rows = t_out[r * o..(r + 1) * o].iter_mut().zip(&y[t_at..t_at + o]);
-            for ((t_out, t), d) in rows.zip(&first) {
-                *t_out = t * d;
-            }
+        for ((v, yv), b) in row.iter_mut().zip(&y[at..at + o]).zip(bias) {
+            *v = parts(yv + b).0;
         }
     }
     Vec::new()
@@ -294,103 +233,81 @@ fn forward_task(args: KernelArgs<'_, '_>) -> Vec<f32> {
 
 /// The backward task; returns its partial sum of the bias gradient.
 #[inline(always)]
-fn backward_task(args: KernelArgs<'_, '_>) -> Vec<f32> {
+fn backward_task(args: KernelArgs<'_>) -> Vec<f32> {
     let KernelArgs {
         offset,
         out,
         y,
         grad,
         bias,
-        p,
-        o,
     } = args;
+    let o = bias.len();
     let mut bias_sum = vec![0.0f32; o];
-    let (mut first, mut second) = (vec![0.0f32; o], vec![0.0f32; o]);
-    let (value_out, tangents_out) = out.split_first_mut().expect("a value block");
-    for (r, value_row) in value_out.chunks_exact_mut(o).enumerate() {
+    for (r, row) in out.chunks_exact_mut(o).enumerate() {
         let at = offset + r * o;
-        let (y_row, g_row) = (&y[at..at + o], &grad[at..at + o]);
-        let rows = value_row.iter_mut().zip(&mut first).zip(&mut second);
-        for ((((v, d), d2), (yv, b)), g) in rows.zip(y_row.iter().zip(bias)).zip(g_row) {
-            let (_, a1, a2) = parts(yv + b);
-            *d = a1;
-            *d2 = a2;
-            *v = g * a1;
-        }
-        for (j, t_out) in tangents_out.iter_mut().enumerate() {
-            let t_at = at + (1 + j) * p * o;
-            let (t_row, g_row) = (&y[t_at..t_at + o], &grad[t_at..t_at + o]);
-            let t_out = &mut t_out[r * o..(r + 1) * o];
-            for c in 0..o {
-                value_row[c] += g_row[c] * t_row[c] * second[c];
-                t_out[c] = g_row[c] * first[c];
-            }
-        }
-        for (total, v) in bias_sum.iter_mut().zip(value_row.iter()) {
-            *total += v;
+        let rows = row.iter_mut().zip(&y[at..at + o]).zip(&grad[at..at + o]);
+        for ((((v, yv), g), b), total) in rows.zip(bias).zip(&mut bias_sum) {
+            *v = g * parts(yv + b).1;
+            *total += *v;
         }
     }
     bias_sum
 }
 
-fn forward_flex(y: &FlexTensor, bias: &FlexTensor, tangents: usize) -> FlexTensor {
+fn forward_flex(y: &FlexTensor, bias: &FlexTensor) -> FlexTensor {
     let shape = y.shape().to_vec();
-    let (groups, o) = (1 + tangents, shape[2]);
-    let p = shape[1] / groups;
+    let o = shape[2];
     let (y, bias) = (contiguous(y), contiguous(bias));
     let mut out = vec![0.0f32; y.len()];
-    tasks(&mut out, groups, p, o)
-        .into_par_iter()
-        .for_each(|(offset, mut parts_out)| {
-            dispatch_simd!(
-                forward_task,
-                KernelArgs {
-                    offset,
-                    out: &mut parts_out,
-                    y: &y,
-                    grad: &[],
-                    bias: &bias,
-                    p,
-                    o,
-                }
-            );
-        });
+    if o > 0 {
+        out.par_chunks_mut(ROWS_PER_TASK * o)
+            .enumerate()
+            .for_each(|(task, rows)| {
+                dispatch_simd!(
+                    forward_task,
+                    KernelArgs {
+                        offset: task * ROWS_PER_TASK * o,
+                        out: rows,
+                        y: &y,
+                        grad: &[],
+                        bias: &bias,
+                    },
+                    KernelArgs<'_>
+                );
+            });
+    }
     flex_tensor(out, shape)
 }
 
 /// Gradients with respect to `y` and `bias` for the output gradient `grad`.
-fn backward_flex(
-    y: &FlexTensor,
-    bias: &FlexTensor,
-    grad: &FlexTensor,
-    tangents: usize,
-) -> (FlexTensor, FlexTensor) {
+fn backward_flex(y: &FlexTensor, bias: &FlexTensor, grad: &FlexTensor) -> (FlexTensor, FlexTensor) {
     let shape = y.shape().to_vec();
-    let (groups, o) = (1 + tangents, shape[2]);
-    let p = shape[1] / groups;
+    let o = shape[2];
     let (y, bias, grad) = (contiguous(y), contiguous(bias), contiguous(grad));
     let mut grad_y = vec![0.0f32; y.len()];
-    let partial_bias: Vec<Vec<f32>> = tasks(&mut grad_y, groups, p, o)
-        .into_par_iter()
-        .map(|(offset, mut parts_out)| {
-            dispatch_simd!(
-                backward_task,
-                KernelArgs {
-                    offset,
-                    out: &mut parts_out,
-                    y: &y,
-                    grad: &grad,
-                    bias: &bias,
-                    p,
-                    o,
-                }
-            )
-        })
-        .collect();
     let mut grad_bias = vec![0.0f32; o];
-    for partial in partial_bias {
-        for (total, v) in grad_bias.iter_mut().zip(partial) {
-            *total += v;
+    if o > 0 {
+        let partial_bias: Vec<Vec<f32>> = grad_y
+            .par_chunks_mut(ROWS_PER_TASK * o)
+            .enumerate()
+            .map(|(task, rows)| {
+                dispatch_simd!(
+                    backward_task,
+                    KernelArgs {
+                        offset: task * ROWS_PER_TASK * o,
+                        out: rows,
+                        y: &y,
+                        grad: &grad,
+                        bias: &bias,
+                    },
+                    KernelArgs<'_>
+                )
+            })
+            .collect();
+        for partial in partial_bias {
+            for (total, v) in grad_bias.iter_mut().zip(partial) {
+                *total += v;
+            }
         }
     }
     (flex_tensor(grad_y, shape), flex_tensor(grad_bias, vec![o]))

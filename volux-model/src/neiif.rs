@@ -170,9 +170,8 @@ pub struct FieldOutput {
 /// in the reverse sweep that gives the normals.
 #[derive(Clone, Copy, Debug)]
 pub struct ActivationKernels {
-    /// `(y, bias, tangents) -> a(y + bias)` ([`fused_activation::activate`]); the field passes
-    /// no tangents.
-    pub activate: fn(Tensor<3>, Tensor<1>, usize) -> Tensor<3>,
+    /// `(y, bias) -> a(y + bias)` ([`fused_activation::activate`]).
+    pub activate: fn(Tensor<3>, Tensor<1>) -> Tensor<3>,
     /// `(u, y, bias) -> u a'(y + bias)` ([`fused_activation::pullback::pullback`]).
     pub pullback: fn(Tensor<3>, Tensor<3>, Tensor<1>) -> Tensor<3>,
 }
@@ -313,7 +312,7 @@ impl Neiif {
             if wants.normals && i < self.density_layer {
                 sweep.push((y.clone(), layer.bias.val(), m));
             }
-            h = (kernels.activate)(y, layer.bias.val(), 0);
+            h = (kernels.activate)(y, layer.bias.val());
             if i + 1 != self.density_layer {
                 continue;
             }
