@@ -10,6 +10,7 @@ use burn::tensor::module::conv_transpose2d;
 use burn::tensor::ops::ConvTransposeOptions;
 use burn::tensor::{Device, Distribution, Tensor};
 
+use crate::batched_matmul::batched_matmul;
 use crate::bias_act;
 use crate::convolution::{self, ConvGeometry};
 
@@ -95,9 +96,13 @@ impl EqualizedLinear {
         bias_act::bias_lrelu(self.linear(x), self.effective_bias(), gain)
     }
 
-    /// `x W^T`, without bias.
+    /// `x W^T`, without bias: one [`batched_matmul`] of a single batch element, reading
+    /// `W` transposed through its strides.
     fn linear(&self, x: Tensor<2>) -> Tensor<2> {
-        x.matmul(self.effective_weight().transpose())
+        let [rows, _] = x.dims();
+        let w_t = self.effective_weight().transpose().unsqueeze_dim(0);
+        let out = w_t.dims()[2];
+        batched_matmul(x.unsqueeze_dim(0), w_t).reshape([rows, out])
     }
 }
 

@@ -16,6 +16,7 @@
 
 pub mod analytic;
 pub mod backend;
+pub mod batched_matmul;
 pub mod bias_act;
 pub mod blur;
 pub mod convolution;

@@ -14,6 +14,7 @@ use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Distribution, Tensor};
 
+use crate::batched_matmul::batched_matmul;
 use crate::equalized::{EqualizedLinear, EqualizedLinearConfig};
 
 /// Added under the square root of the demodulation (StyleGAN2's value).
@@ -105,10 +106,9 @@ impl ModulatedLinear {
     }
 
     /// The linear part, without bias: `[batch, points, d_input] -> [batch, points, d_output]`,
-    /// one batched matmul with the folded weight. Tangents (derivatives of the input) go
-    /// through this alone.
+    /// one batched matmul with the folded weight.
     pub fn linear(&self, x: Tensor<3>, m: &Modulation) -> Tensor<3> {
-        x.matmul(m.weight.clone())
+        batched_matmul(x, m.weight.clone())
     }
 
     /// Adds the bias to the output of [`Self::linear`].

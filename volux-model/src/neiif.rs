@@ -22,6 +22,7 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, activation};
 
+use crate::batched_matmul::batched_matmul;
 use crate::equalized::{EqualizedLinear, EqualizedLinearConfig};
 use crate::fused_activation;
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
@@ -318,11 +319,12 @@ impl Neiif {
             }
             let o = layer.d_output();
             let head = self.density_head.effective_weight(); // [1, o]
-            let mut raw = h
+            let head_t = head
                 .clone()
-                .reshape([b * p, o])
-                .matmul(head.clone().transpose())
-                .reshape([b, p]);
+                .transpose()
+                .reshape([1, o, 1])
+                .expand([b, o, 1]);
+            let mut raw = batched_matmul(h.clone(), head_t).reshape([b, p]);
             if let Some(bias) = self.density_head.effective_bias() {
                 raw = raw + bias.reshape([1, 1]);
             }
@@ -335,7 +337,7 @@ impl Neiif {
                 let mut u = head.reshape([1, 1, o]).expand([b, p, o]);
                 for (y, bias, m) in sweep.drain(..).rev() {
                     let v = (kernels.pullback)(u, y, bias);
-                    u = v.matmul(m.weight.swap_dims(1, 2));
+                    u = batched_matmul(v, m.weight.swap_dims(1, 2));
                 }
                 // Feature c depends on coordinate c mod 3 alone.
                 let mut g = (u * deriv)
