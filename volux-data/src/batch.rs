@@ -218,6 +218,7 @@ impl<E: Send + 'static> BatchLoader<E> {
                 match rayon::ThreadPoolBuilder::new()
                     .num_threads(1)
                     .thread_name(|_| "volux-batches-pool".into())
+                    .start_handler(|_| yield_to_the_step())
                     .build()
                 {
                     Ok(pool) => pool.install(run),
@@ -236,6 +237,31 @@ impl<E: Send + 'static> BatchLoader<E> {
         self.receiver.as_ref()?.recv().ok()
     }
 }
+
+/// Lowers the calling thread's scheduling priority by [`LOADER_NICENESS`] steps (Linux:
+/// niceness is per thread): on a machine whose cores all run the training step's kernels, the
+/// batches are then made mostly in the step's idle moments (its serial sections, its waits)
+/// instead of taking a core's share from it, and the prefetched batches keep the step fed.
+fn yield_to_the_step() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: gettid, getpriority and setpriority have no memory-safety preconditions; on
+        // Linux a thread id names that thread alone.
+        let ok = unsafe {
+            let tid = libc::gettid() as libc::id_t;
+            let current = libc::getpriority(libc::PRIO_PROCESS, tid);
+            let lower = (current + LOADER_NICENESS).min(19);
+            libc::setpriority(libc::PRIO_PROCESS, tid, lower) == 0
+        };
+        if !ok {
+            tracing::debug!("could not lower the batch thread's priority; it keeps its own");
+        }
+    }
+}
+
+/// How much lower the batch thread's priority is than the process's (niceness steps; 19 is
+/// the lowest priority there is).
+const LOADER_NICENESS: i32 = 10;
 
 impl<E> Drop for BatchLoader<E> {
     fn drop(&mut self) {
@@ -271,16 +297,27 @@ mod tests {
     }
 
     #[test]
-    fn batches_are_made_outside_the_global_rayon_pool() {
-        let mut loader = BatchLoader::<String>::spawn(0, 1, |i| {
+    fn batches_are_made_outside_the_global_rayon_pool_at_a_lower_priority() {
+        #[cfg(target_os = "linux")]
+        let spawner = niceness();
+        let mut loader = BatchLoader::<String>::spawn(0, 1, move |i| {
             // Inside the loader's own pool: one thread, not the global pool's.
             assert_eq!(rayon::current_num_threads(), 1);
             assert!(rayon::current_thread_index().is_some());
+            #[cfg(target_os = "linux")]
+            assert_eq!(niceness(), (spawner + LOADER_NICENESS).min(19));
             Ok(Batch::collate(i, &[sample(4, i as f32), sample(4, 1.0)]))
         });
         for _ in 0..2 {
             loader.next_batch().expect("a batch").expect("made");
         }
+    }
+
+    /// The calling thread's niceness.
+    #[cfg(target_os = "linux")]
+    fn niceness() -> i32 {
+        // SAFETY: no memory-safety preconditions.
+        unsafe { libc::getpriority(libc::PRIO_PROCESS, libc::gettid() as libc::id_t) }
     }
 
     #[test]
