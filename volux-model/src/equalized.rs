@@ -98,7 +98,7 @@ impl EqualizedLinear {
 
     /// `x W^T`, without bias: one [`batched_matmul`] of a single batch element, reading
     /// `W` transposed through its strides.
-    fn linear(&self, x: Tensor<2>) -> Tensor<2> {
+    pub fn linear(&self, x: Tensor<2>) -> Tensor<2> {
         let [rows, _] = x.dims();
         let w_t = self.effective_weight().transpose().unsqueeze_dim(0);
         let out = w_t.dims()[2];

@@ -356,10 +356,17 @@ impl Neiif {
                 return out;
             }
         }
-        let head = per_point(
-            &self.head_out,
-            smooth_lrelu(per_point(&self.head_hidden, h.clone())),
-        );
+        // The hidden layer's bias and activation in the fused kernel.
+        let hidden = self.head_hidden.weight.dims()[0];
+        let y = self
+            .head_hidden
+            .linear(h.clone().reshape([b * p, self.feature_dim()]))
+            .reshape([b, p, hidden]);
+        let bias = self
+            .head_hidden
+            .effective_bias()
+            .unwrap_or_else(|| Tensor::zeros([hidden], &y.device()));
+        let head = per_point(&self.head_out, (kernels.activate)(y, bias));
         let k = self.specular_lobes();
         out.albedo = Some(activation::sigmoid(head.clone().narrow(2, 0, 3)));
         out.specular_weights = Some(activation::softplus(head.narrow(2, 3, k), 1.0));

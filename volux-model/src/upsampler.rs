@@ -18,8 +18,8 @@ use burn::nn::{PixelShuffle, PixelShuffleConfig};
 use burn::tensor::{Device, Tensor};
 
 use crate::fir_filter::{Fir, fir2d, fir2d_adjoint};
+use crate::fused_activation;
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
-use crate::neiif::smooth_lrelu;
 
 /// Configuration of an [`Upsampler`].
 #[derive(Config, Debug)]
@@ -77,10 +77,23 @@ impl UpsamplerConfig {
 
 /// A modulated layer applied per pixel (a modulated 1x1 convolution): `[b, c, h, w]`.
 fn conv1x1(layer: &ModulatedLinear, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
+    per_pixel(x, |x| layer.forward(x, w))
+}
+
+/// [`conv1x1`] followed by the smooth activation, the bias and activation in one fused
+/// operation ([`fused_activation::activate`]).
+fn conv1x1_activated(layer: &ModulatedLinear, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
+    per_pixel(x, |x| {
+        let m = layer.modulation(w);
+        fused_activation::activate(layer.linear(x, &m), layer.bias.val())
+    })
+}
+
+/// `f` applied to `x: [batch, c, h, w]` as `[batch, h w, c]` pixels, back to `[batch, o, h, w]`.
+fn per_pixel(x: Tensor<4>, f: impl FnOnce(Tensor<3>) -> Tensor<3>) -> Tensor<4> {
     let [b, c, h, wd] = x.dims();
-    let per_pixel = x.reshape([b, c, h * wd]).swap_dims(1, 2); // [b, hw, c]
-    let y = layer.forward(per_pixel, w);
-    let o = layer.d_output();
+    let y = f(x.reshape([b, c, h * wd]).swap_dims(1, 2));
+    let o = y.dims()[2];
     y.swap_dims(1, 2).reshape([b, o, h, wd])
 }
 
@@ -159,7 +172,7 @@ impl Upsampler {
         let mut x = x;
         for (i, block) in self.blocks.iter().enumerate() {
             let albedo = bilinear_upsample(x.clone().narrow(1, 0, 3), 2);
-            let h = smooth_lrelu(conv1x1(&block.conv1, x, w.clone()));
+            let h = conv1x1_activated(&block.conv1, x, w.clone());
             let y = blur_stride1(block.shuffle.forward(conv1x1(&block.conv2, h, w.clone())));
             let c = y.dims()[1];
             let alpha = fade.map_or(1.0, |f| f[i]);
