@@ -20,8 +20,9 @@
 //! them: its depthwise path loops over all `taps^2` filter positions, and its transposed
 //! convolution runs one matrix product per channel with an inner dimension of 1 and then a
 //! scalar scatter. Here each plane is filtered along rows, then along columns (`2 taps`
-//! multiply-adds per output instead of `taps^2`), the column pass one vectorisable row update
-//! per tap, planes in parallel. Tested against the reference, against an f64 loop, and for the
+//! multiply-adds per output instead of `taps^2`), each pass one vectorisable row update per
+//! tap (the row pass reads the padded row split by stride phase, so that a tap's inputs are
+//! contiguous: 1.2-1.6x on the discriminators' blurs), planes in parallel. Tested against the reference, against an f64 loop, and for the
 //! adjoint identity `<A x, y> = <x, A^T y>`.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
@@ -236,16 +237,85 @@ fn kernel(x: &FlexTensor, fir: &Fir, direction: Direction, out_hw: [usize; 2]) -
     flex_tensor(out, vec![b, c, ho, wo])
 }
 
+/// The padded row `padded[m s + q]` split by phase: `phases[q][m]`, `ceil((w + 2 pad) / s)`
+/// entries per phase (the last ones zero where the row is shorter). Tap `u` of output `j`
+/// reads padded entry `j s + u`, i.e. `phases[u % s][j + u / s]`: for every tap a contiguous
+/// run of `wo` entries, so the row passes below are one vectorisable multiply-add per tap
+/// instead of a strided window per output.
+struct Phases {
+    stride: usize,
+    len: usize,
+    values: Vec<f32>,
+}
+
+impl Phases {
+    fn new(fir: &Fir, w: usize) -> Self {
+        let len = (w + 2 * fir.pad).div_ceil(fir.stride);
+        Self {
+            stride: fir.stride,
+            len,
+            values: vec![0.0; fir.stride * len],
+        }
+    }
+
+    /// Loads `x_row` (unpadded) into the phases; the padding stays zero.
+    fn load(&mut self, x_row: &[f32], pad: usize) {
+        if self.stride == 1 {
+            self.values[pad..pad + x_row.len()].copy_from_slice(x_row);
+            return;
+        }
+        for (v, at) in x_row.iter().zip(self.positions(pad)) {
+            self.values[at] = *v;
+        }
+    }
+
+    /// Where padded entries `pad, pad + 1, ..` sit in `values`, without a division per entry.
+    fn positions(&self, pad: usize) -> impl Iterator<Item = usize> + use<> {
+        let (s, len) = (self.stride, self.len);
+        let (mut q, mut m) = (pad % s, pad / s);
+        std::iter::from_fn(move || {
+            let at = q * len + m;
+            q += 1;
+            if q == s {
+                q = 0;
+                m += 1;
+            }
+            Some(at)
+        })
+    }
+
+    /// The `n` entries of phase `q` from `start`.
+    fn run(&self, q: usize, start: usize, n: usize) -> &[f32] {
+        &self.values[q * self.len + start..q * self.len + start + n]
+    }
+
+    fn run_mut(&mut self, q: usize, start: usize, n: usize) -> &mut [f32] {
+        &mut self.values[q * self.len + start..q * self.len + start + n]
+    }
+
+    /// The unpadded row back out of the phases into `x_row`.
+    fn store(&self, x_row: &mut [f32], pad: usize) {
+        if self.stride == 1 {
+            x_row.copy_from_slice(&self.values[pad..pad + x_row.len()]);
+            return;
+        }
+        for (v, at) in x_row.iter_mut().zip(self.positions(pad)) {
+            *v = self.values[at];
+        }
+    }
+}
+
 /// `y = fir(x)` on one plane: rows first (into `[h, wo]`), then columns.
 fn forward_plane(fir: &Fir, x: &[f32], [h, w]: [usize; 2], y: &mut [f32], [_, wo]: [usize; 2]) {
     let (k, p, s) = (&fir.taps, fir.pad, fir.stride);
-    let mut padded = vec![0.0f32; w + 2 * p];
+    let mut phases = Phases::new(fir, w);
     let mut rows = vec![0.0f32; h * wo];
     for (x_row, r_row) in x.chunks_exact(w).zip(rows.chunks_exact_mut(wo)) {
-        padded[p..p + w].copy_from_slice(x_row);
-        for (j, out) in r_row.iter_mut().enumerate() {
-            let window = &padded[j * s..j * s + k.len()];
-            *out = window.iter().zip(k).map(|(a, b)| a * b).sum();
+        phases.load(x_row, p);
+        for (u, &tap) in k.iter().enumerate() {
+            for (o, v) in r_row.iter_mut().zip(phases.run(u % s, u / s, wo)) {
+                *o += tap * v;
+            }
         }
     }
     for (i, y_row) in y.chunks_exact_mut(wo).enumerate() {
@@ -275,16 +345,15 @@ fn adjoint_plane(fir: &Fir, y: &[f32], [_, wo]: [usize; 2], x: &mut [f32], [h, w
             }
         }
     }
-    let mut padded = vec![0.0f32; w + 2 * p];
+    let mut phases = Phases::new(fir, w);
     for (r_row, x_row) in rows.chunks_exact(wo).zip(x.chunks_exact_mut(w)) {
-        padded.fill(0.0);
-        for (j, &v) in r_row.iter().enumerate() {
-            let window = &mut padded[j * s..j * s + k.len()];
-            for (o, tap) in window.iter_mut().zip(k) {
+        phases.values.fill(0.0);
+        for (u, &tap) in k.iter().enumerate() {
+            for (o, v) in phases.run_mut(u % s, u / s, wo).iter_mut().zip(r_row) {
                 *o += tap * v;
             }
         }
-        x_row.copy_from_slice(&padded[p..p + w]);
+        phases.store(x_row, p);
     }
 }
 
