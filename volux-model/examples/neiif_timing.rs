@@ -1,6 +1,6 @@
 //! Times the NeIIF on the CPU backend at the quickstart's size: forward without autodiff,
 //! forward recorded by autodiff, and forward + backward, each with every output (density,
-//! forward-mode normals, albedo, specular weights, features) as the renderer asks for them.
+//! normals by the reverse sweep, albedo, specular weights, features) as the renderer asks for them.
 //!
 //! `cargo run -p volux-model --example neiif_timing [--release] -- [points] [batch] [repeats]`
 //! (defaults 8192 points per batch element, i.e. one of the renderer's two passes at 8 + 8

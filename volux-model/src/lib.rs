@@ -1,7 +1,7 @@
 //! VoLux-GAN's networks as Burn modules, one module per concept of the paper.
 //!
 //! - Generator (section 3, appendix B): [`mapping`] network, [`positional_encoding`],
-//!   [`modulated`] layers, the [`neiif`] (its activation a [`fused_activation`]) (density, forward-mode normals, albedo, specular
+//!   [`modulated`] layers (their products [`batched_matmul`]), the [`neiif`] (its activation a [`fused_activation`]) (density, normals by a reverse sweep, albedo, specular
 //!   weights, features), volume rendering ([`ray_sampling`], optionally placed by
 //!   density-only [`proposal`] passes, -> [`volume_rendering`] -> [`ray_marching`], with the [`light_lookup`] and [`shading`] for `D` and `S`, per sample or,
 //!   for the paper's surface-relighting ablation, per pixel), the [`upsampler`], the
