@@ -1,6 +1,6 @@
 //! What the hand-written flex operations (this crate's kernels and `volux-train`'s fused
-//! Adam) share: which path a device takes, and conversions
-//! between flex tensors and slices.
+//! Adam) share: which path a device takes, conversions between flex tensors and slices, and
+//! the instruction set a kernel is compiled for ([`dispatch_simd`]).
 //!
 //! Burn 0.22 picks the backend at run time from the device. A custom operation reaches flex's
 //! tensors through Burn's backend-extension API (`Tensor::try_into_primitive` /
@@ -65,4 +65,116 @@ where
         unreachable!("an autodiff flex device holds autodiff flex tensors")
     };
     t.into_parts()
+}
+
+/// The instruction sets the kernels are compiled for, best last.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub(crate) enum Simd {
+    /// The baseline target.
+    Baseline,
+    /// AVX2 and FMA: eight lanes.
+    Avx2,
+    /// AVX-512 (F, DQ, VL, BW) and FMA: sixteen lanes and 32 vector registers, which the
+    /// polynomials' constants need.
+    Avx512,
+}
+
+/// The best instruction set this CPU has (capped by [`SIMD_CAP`] in tests).
+pub(crate) fn simd() -> Simd {
+    #[cfg(target_arch = "x86_64")]
+    let best = if ["avx512f", "avx512dq", "avx512vl", "avx512bw", "fma"]
+        .iter()
+        .all(|f| detected(f))
+    {
+        Simd::Avx512
+    } else if detected("avx2") && detected("fma") {
+        Simd::Avx2
+    } else {
+        Simd::Baseline
+    };
+    #[cfg(not(target_arch = "x86_64"))]
+    let best = Simd::Baseline;
+    #[cfg(test)]
+    let best = best.min(simd_cap::get());
+    best
+}
+
+#[cfg(target_arch = "x86_64")]
+fn detected(feature: &str) -> bool {
+    match feature {
+        "avx512f" => std::is_x86_feature_detected!("avx512f"),
+        "avx512dq" => std::is_x86_feature_detected!("avx512dq"),
+        "avx512vl" => std::is_x86_feature_detected!("avx512vl"),
+        "avx512bw" => std::is_x86_feature_detected!("avx512bw"),
+        "avx2" => std::is_x86_feature_detected!("avx2"),
+        "fma" => std::is_x86_feature_detected!("fma"),
+        _ => false,
+    }
+}
+
+/// Runs `kernel(args: $args_ty) -> Vec<f32>` compiled for the best instruction set of
+/// [`simd`]: the same source, vectorised sixteen, eight or four lanes wide.
+macro_rules! dispatch_simd {
+    ($kernel:ident, $args:expr, $args_ty:ty) => {{
+        let args: $args_ty = $args;
+        match $crate::flex_extension::simd() {
+            #[cfg(target_arch = "x86_64")]
+            $crate::flex_extension::Simd::Avx512 => {
+                #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx512bw,avx2,fma")]
+                unsafe fn widest(args: $args_ty) -> Vec<f32> {
+                    $kernel(args)
+                }
+                // SAFETY: `simd` found the features `widest` is compiled for.
+                unsafe { widest(args) }
+            }
+            #[cfg(target_arch = "x86_64")]
+            $crate::flex_extension::Simd::Avx2 => {
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn wide(args: $args_ty) -> Vec<f32> {
+                    $kernel(args)
+                }
+                // SAFETY: `simd` found the features `wide` is compiled for.
+                unsafe { wide(args) }
+            }
+            _ => $kernel(args),
+        }
+    }};
+}
+
+pub(crate) use dispatch_simd;
+
+/// A cap on [`simd`] for tests that run every instruction set: they hold [`simd_cap::with`]'s
+/// lock while the cap is lowered; other tests meet only correct kernels meanwhile.
+#[cfg(test)]
+pub(crate) mod simd_cap {
+    use std::sync::Mutex;
+    use std::sync::atomic::{AtomicU8, Ordering};
+
+    use super::Simd;
+
+    static CAP: AtomicU8 = AtomicU8::new(2);
+    static LOCK: Mutex<()> = Mutex::new(());
+
+    pub(crate) fn get() -> Simd {
+        match CAP.load(Ordering::Relaxed) {
+            0 => Simd::Baseline,
+            1 => Simd::Avx2,
+            _ => Simd::Avx512,
+        }
+    }
+
+    /// Runs `f` once per instruction set this CPU has, with the kernels capped at it.
+    pub(crate) fn each(mut f: impl FnMut(Simd)) {
+        let _guard = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+        let top = super::simd();
+        for (cap, level) in [(0, Simd::Baseline), (1, Simd::Avx2), (2, Simd::Avx512)] {
+            if level > top {
+                continue;
+            }
+            CAP.store(cap, Ordering::Relaxed);
+            assert_eq!(super::simd(), level);
+            f(level);
+        }
+        CAP.store(2, Ordering::Relaxed);
+    }
 }

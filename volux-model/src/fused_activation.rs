@@ -26,7 +26,7 @@ use burn::tensor::{DType, DispatchTensor, Tensor};
 use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
-use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
+use crate::flex_extension::{Route, autodiff_parts, contiguous, dispatch_simd, flex_tensor, route};
 use crate::neiif::{SMOOTH_GAIN, smooth_lrelu};
 
 /// Rows of `o` channels per parallel task.
@@ -174,80 +174,6 @@ pub(crate) fn parts(z: f32) -> (f32, f32, f32) {
     // sigmoid (1 - sigmoid) = e / (1 + e)^2 on both sides of 0.
     let second = g * 0.8 * e * r * r;
     (value, first, second)
-}
-
-/// The instruction sets the kernels are compiled for, best last.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
-pub(crate) enum Simd {
-    /// The baseline target.
-    Baseline,
-    /// AVX2 and FMA: eight lanes.
-    Avx2,
-    /// AVX-512 (F, DQ, VL, BW) and FMA: sixteen lanes and 32 vector registers, which the
-    /// polynomials' constants need.
-    Avx512,
-}
-
-/// The best instruction set this CPU has (capped by [`SIMD_CAP`] in tests).
-pub(crate) fn simd() -> Simd {
-    #[cfg(target_arch = "x86_64")]
-    let best = if ["avx512f", "avx512dq", "avx512vl", "avx512bw", "fma"]
-        .iter()
-        .all(|f| detected(f))
-    {
-        Simd::Avx512
-    } else if detected("avx2") && detected("fma") {
-        Simd::Avx2
-    } else {
-        Simd::Baseline
-    };
-    #[cfg(not(target_arch = "x86_64"))]
-    let best = Simd::Baseline;
-    #[cfg(test)]
-    let best = best.min(tests::simd_cap());
-    best
-}
-
-#[cfg(target_arch = "x86_64")]
-fn detected(feature: &str) -> bool {
-    match feature {
-        "avx512f" => std::is_x86_feature_detected!("avx512f"),
-        "avx512dq" => std::is_x86_feature_detected!("avx512dq"),
-        "avx512vl" => std::is_x86_feature_detected!("avx512vl"),
-        "avx512bw" => std::is_x86_feature_detected!("avx512bw"),
-        "avx2" => std::is_x86_feature_detected!("avx2"),
-        "fma" => std::is_x86_feature_detected!("fma"),
-        _ => false,
-    }
-}
-
-/// Runs `kernel(args: $args_ty) -> Vec<f32>` compiled for the best instruction set of
-/// [`simd`]: the same source, vectorised sixteen, eight or four lanes wide.
-macro_rules! dispatch_simd {
-    ($kernel:ident, $args:expr, $args_ty:ty) => {{
-        let args: $args_ty = $args;
-        match $crate::fused_activation::simd() {
-            #[cfg(target_arch = "x86_64")]
-            $crate::fused_activation::Simd::Avx512 => {
-                #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx512bw,avx2,fma")]
-                unsafe fn widest(args: $args_ty) -> Vec<f32> {
-                    $kernel(args)
-                }
-                // SAFETY: `simd` found the features `widest` is compiled for.
-                unsafe { widest(args) }
-            }
-            #[cfg(target_arch = "x86_64")]
-            $crate::fused_activation::Simd::Avx2 => {
-                #[target_feature(enable = "avx2,fma")]
-                unsafe fn wide(args: $args_ty) -> Vec<f32> {
-                    $kernel(args)
-                }
-                // SAFETY: `simd` found the features `wide` is compiled for.
-                unsafe { wide(args) }
-            }
-            _ => $kernel(args),
-        }
-    }};
 }
 
 /// One parallel task of [`forward_flex`] or [`backward_flex`]: its rows of the output, the

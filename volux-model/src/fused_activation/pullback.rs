@@ -26,7 +26,7 @@ use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
 use super::{ROWS_PER_TASK, parts};
-use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
+use crate::flex_extension::{Route, autodiff_parts, contiguous, dispatch_simd, flex_tensor, route};
 use crate::neiif::smooth_lrelu_parts;
 
 /// `u a'(y + bias)` for `u, y: [batch, p, o]` and `bias: [o]` (see the module documentation).

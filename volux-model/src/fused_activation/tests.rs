@@ -3,11 +3,9 @@
 
 use burn::tensor::{Device, TensorData};
 
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicU8, Ordering};
-
 use super::*;
 use crate::backend::to_f32_vec;
+use crate::flex_extension::simd_cap;
 use crate::test_support::normals;
 use volux_envmap::report::SplitMix64;
 
@@ -211,24 +209,10 @@ fn stiff_and_zero_pre_activations_give_the_limits() {
     assert_close(&got, &want, 1e-5, "stiff d/dy");
 }
 
-/// The instruction set the kernels may use at most (0 baseline, 1 AVX2, 2 AVX-512): tests
-/// that lower it hold [`SIMD_LOCK`]; the rest of the suite meets only correct kernels then.
-static SIMD_CAP: AtomicU8 = AtomicU8::new(2);
-static SIMD_LOCK: Mutex<()> = Mutex::new(());
-
-pub(super) fn simd_cap() -> Simd {
-    match SIMD_CAP.load(Ordering::Relaxed) {
-        0 => Simd::Baseline,
-        1 => Simd::Avx2,
-        _ => Simd::Avx512,
-    }
-}
-
 /// The fused activation and pullback, values and gradients, compiled for every instruction
 /// set this CPU has, against the tensor-op references.
 #[test]
 fn every_instruction_set_matches_the_reference() {
-    let _guard = SIMD_LOCK.lock().unwrap_or_else(|e| e.into_inner());
     let mut rng = SplitMix64::new(77);
     let shape = [2, 300, 7];
     let n: usize = shape.iter().product();
@@ -250,14 +234,7 @@ fn every_instruction_set_matches_the_reference() {
         ]
     };
     let want_pull = pull(pullback::pullback_reference);
-    let best = SIMD_CAP.swap(2, Ordering::Relaxed);
-    let top = simd();
-    for (cap, level) in [(0, Simd::Baseline), (1, Simd::Avx2), (2, Simd::Avx512)] {
-        if level > top {
-            continue;
-        }
-        SIMD_CAP.store(cap, Ordering::Relaxed);
-        assert_eq!(simd(), level);
+    simd_cap::each(|level| {
         let got = loss_and_grads(activate, &y, &bias, &r, shape);
         assert_close(&got.0, &want.0, 1e-6, &format!("{level:?}: value"));
         assert_close(&got.1, &want.1, 1e-5, &format!("{level:?}: d/dy"));
@@ -266,6 +243,5 @@ fn every_instruction_set_matches_the_reference() {
         for (k, what) in ["pullback", "d/du", "d/dy"].iter().enumerate() {
             assert_close(&got[k], &want_pull[k], 1e-5, &format!("{level:?}: {what}"));
         }
-    }
-    SIMD_CAP.store(best, Ordering::Relaxed);
+    });
 }
