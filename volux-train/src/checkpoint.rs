@@ -3,9 +3,14 @@
 //! count, the non-finite counters, the seed, the config as written). Nothing else is needed to
 //! resume: latents and ray jitter are functions of the seed and the step.
 //!
-//! A checkpoint is written into a hidden `.checkpoint-<step>.partial/` folder and renamed into
-//! place once complete, so a crash mid-write leaves the previous checkpoints untouched; only
-//! the newest `keep` are kept.
+//! A checkpoint is written into a hidden `.checkpoint-<step>.partial/` folder, flushed to the
+//! disk (every file, then the folder) and renamed into place once complete, so a crash or a
+//! power cut mid-write leaves the previous checkpoints untouched; only the newest `keep` are
+//! kept. An old checkpoint is first renamed to a hidden `.checkpoint-<step>.deleting/` and
+//! then removed, so a kill during the clean-up never leaves a visible folder without its
+//! `state.toml`; the next save removes whatever such leftovers (and stale partial folders) a
+//! killed run left behind. Loading refuses weights that hold NaN or infinity, naming the file
+//! and the parameter.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -15,7 +20,8 @@ use burn::optim::ModuleOptimizer;
 use serde::{Deserialize, Serialize};
 use volux_model::generator::Generator;
 
-use crate::networks::Discriminators;
+use crate::networks::{Discriminators, first_non_finite};
+use volux_envmap::io::{sync_dir, sync_file};
 
 /// Bumped when the layout changes.
 pub const CHECKPOINT_FORMAT: u32 = 1;
@@ -27,6 +33,15 @@ const OPTIMIZER_G: &str = "optimizer_g.bpk";
 const OPTIMIZER_D: &str = "optimizer_d.bpk";
 const STATE: &str = "state.toml";
 const PREFIX: &str = "checkpoint-";
+/// Every file a checkpoint folder holds.
+const FILES: [&str; 6] = [
+    GENERATOR,
+    GENERATOR_EMA,
+    DISCRIMINATORS,
+    OPTIMIZER_G,
+    OPTIMIZER_D,
+    STATE,
+];
 
 /// Why a checkpoint cannot be written or read.
 #[derive(Debug, thiserror::Error)]
@@ -35,6 +50,10 @@ pub enum CheckpointError {
     File { path: PathBuf, message: String },
     #[error("no complete checkpoint in {0}")]
     None(PathBuf),
+    #[error(
+        "{path}: parameter `{parameter}` holds NaN or infinity: the file is damaged; resume or sample from an older checkpoint of the run"
+    )]
+    NonFinite { path: PathBuf, parameter: String },
     #[error(
         "checkpoint {path} was written by a run with other shapes:\n  checkpoint: {checkpoint}\n  config:     {config}"
     )]
@@ -133,6 +152,49 @@ pub fn resolve(path: &Path) -> Result<PathBuf, CheckpointError> {
     }
 }
 
+/// What a killed run can leave in a run folder: hidden `.checkpoint-<step>.partial/` and
+/// `.checkpoint-<step>.deleting/` folders, and (from before deletions were renamed first)
+/// visible `checkpoint-<step>/` folders without `state.toml` that hold nothing but checkpoint
+/// files.
+fn leftovers(root: &Path) -> Vec<PathBuf> {
+    let Ok(entries) = fs::read_dir(root) else {
+        return Vec::new();
+    };
+    entries
+        .filter_map(|e| {
+            let e = e.ok()?;
+            let name = e.file_name().to_str()?.to_string();
+            let path = e.path();
+            if !path.is_dir() {
+                return None;
+            }
+            let hidden = name
+                .strip_prefix('.')
+                .and_then(|n| n.strip_suffix(".partial").or(n.strip_suffix(".deleting")))
+                .is_some_and(|n| step_of(n).is_some());
+            let half_deleted = step_of(&name).is_some()
+                && !path.join(STATE).exists()
+                && fs::read_dir(&path).is_ok_and(|files| {
+                    files.filter_map(Result::ok).all(|f| {
+                        f.file_name()
+                            .to_str()
+                            .is_some_and(|n| FILES.contains(&n) && n != STATE)
+                    })
+                });
+            (hidden || half_deleted).then_some(path)
+        })
+        .collect()
+}
+
+/// Removes a checkpoint folder: renamed to a hidden `.<name>.deleting` first, so that it stops
+/// being a checkpoint at once, then deleted.
+fn remove(dir: &Path) -> Result<(), CheckpointError> {
+    let name = dir.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+    let doomed = dir.with_file_name(format!(".{name}.deleting"));
+    fs::rename(dir, &doomed).map_err(|e| file_error(dir, e))?;
+    fs::remove_dir_all(&doomed).map_err(|e| file_error(&doomed, e))
+}
+
 /// Writes a checkpoint of `state` under `root` and deletes all but the newest `keep`.
 pub fn save(
     root: &Path,
@@ -141,12 +203,12 @@ pub fn save(
     keep: usize,
 ) -> Result<PathBuf, CheckpointError> {
     fs::create_dir_all(root).map_err(|e| file_error(root, e))?;
+    for stale in leftovers(root) {
+        fs::remove_dir_all(&stale).map_err(|e| file_error(&stale, e))?;
+    }
     let name = format!("{PREFIX}{:08}", state.step);
     let partial = root.join(format!(".{name}.partial"));
     let done = root.join(&name);
-    if partial.exists() {
-        fs::remove_dir_all(&partial).map_err(|e| file_error(&partial, e))?;
-    }
     fs::create_dir(&partial).map_err(|e| file_error(&partial, e))?;
     let write = || -> Result<(), CheckpointError> {
         let record = |p: &Path, r: Result<(), burn::store::RecordError>| {
@@ -166,10 +228,16 @@ pub fn save(
         let p = partial.join(STATE);
         let text = toml::to_string(state).map_err(|e| file_error(&p, e))?;
         fs::write(&p, text).map_err(|e| file_error(&p, e))?;
-        if done.exists() {
-            fs::remove_dir_all(&done).map_err(|e| file_error(&done, e))?;
+        for file in FILES {
+            let p = partial.join(file);
+            sync_file(&p).map_err(|e| file_error(&p, e))?;
         }
-        fs::rename(&partial, &done).map_err(|e| file_error(&done, e))
+        sync_dir(&partial).map_err(|e| file_error(&partial, e))?;
+        if done.exists() {
+            remove(&done)?;
+        }
+        fs::rename(&partial, &done).map_err(|e| file_error(&done, e))?;
+        sync_dir(root).map_err(|e| file_error(root, e))
     };
     if let Err(e) = write() {
         let _ = fs::remove_dir_all(&partial);
@@ -177,8 +245,9 @@ pub fn save(
     }
     let all = list(root);
     for (_, old) in all.iter().take(all.len().saturating_sub(keep)) {
-        fs::remove_dir_all(old).map_err(|e| file_error(old, e))?;
+        remove(old)?;
     }
+    sync_dir(root).map_err(|e| file_error(root, e))?;
     Ok(done)
 }
 
@@ -220,6 +289,9 @@ pub fn load(dir: &Path, nets: Networks) -> Result<Networks, CheckpointError> {
         .d
         .try_load_record(module(DISCRIMINATORS)?)
         .map_err(|e| apply(DISCRIMINATORS, e))?;
+    finite(dir, GENERATOR, &g)?;
+    finite(dir, GENERATOR_EMA, &ema)?;
+    finite(dir, DISCRIMINATORS, &d)?;
     let opt = |o: ModuleOptimizer, name: &str| {
         let p = dir.join(name);
         o.load(&p).map_err(|e| file_error(&p, format!("{e:?}")))
@@ -236,6 +308,20 @@ pub fn load(dir: &Path, nets: Networks) -> Result<Networks, CheckpointError> {
 /// Loads only the EMA generator (what sampling needs) into `ema`.
 pub fn load_ema(dir: &Path, ema: Generator) -> Result<Generator, CheckpointError> {
     let p = dir.join(GENERATOR_EMA);
-    ema.try_load_file(&p)
-        .map_err(|e| file_error(&p, format!("{e:?}")))
+    let ema = ema
+        .try_load_file(&p)
+        .map_err(|e| file_error(&p, format!("{e:?}")))?;
+    finite(dir, GENERATOR_EMA, &ema)?;
+    Ok(ema)
+}
+
+/// Refuses a loaded module with a NaN or an infinity in any parameter.
+fn finite<M: Module>(dir: &Path, file: &str, module: &M) -> Result<(), CheckpointError> {
+    match first_non_finite(module) {
+        None => Ok(()),
+        Some(parameter) => Err(CheckpointError::NonFinite {
+            path: dir.join(file),
+            parameter,
+        }),
+    }
 }

@@ -4,6 +4,7 @@
 
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::{Device, Tensor};
+use volux_model::backend::to_f32_vec;
 use volux_model::discriminator::Discriminator;
 use volux_model::presets::DiscriminatorRole;
 
@@ -132,10 +133,42 @@ pub fn all_finite<M: Module>(module: &M) -> bool {
         .is_none_or(|total| total.into_scalar::<f32>().is_finite())
 }
 
+/// The path (`field.field...`, as Burn's module derive names them) of the first float parameter
+/// of a module that holds a NaN or an infinity, if any. Reads every parameter back: for
+/// loading, not for every step (that is [`all_finite`]).
+pub fn first_non_finite<M: Module>(module: &M) -> Option<String> {
+    struct Find {
+        path: Vec<String>,
+        found: Option<String>,
+    }
+    impl ModuleVisitor for Find {
+        fn enter_module(&mut self, name: &str, _: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _: &str, _: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if self.found.is_none()
+                && to_f32_vec(param.val().inner())
+                    .iter()
+                    .any(|v| !v.is_finite())
+            {
+                self.found = Some(self.path.join("."));
+            }
+        }
+    }
+    let mut find = Find {
+        path: Vec::new(),
+        found: None,
+    };
+    module.visit(&mut find);
+    find.found
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use volux_model::backend::to_f32_vec;
     use volux_model::discriminator::DiscriminatorConfig;
 
     #[test]
@@ -177,5 +210,26 @@ mod tests {
             beta: 0.0,
         });
         assert!(!all_finite(&broken));
+        assert_eq!(first_non_finite(&mix), None);
+        // The first parameter visited is the input layer's weight; an infinity in the last
+        // one (the output layer's) is named as well.
+        let first = first_non_finite(&broken).expect("the NaN is found");
+        assert!(first.ends_with("weight"), "{first}");
+        let mut count = Collect(Vec::new());
+        mix.visit(&mut count);
+        let last = count.0.len() - 1;
+        let infinite = mix.clone().map(&mut Lerp {
+            targets: {
+                let mut c = Collect(Vec::new());
+                mix.visit(&mut c);
+                let mut v = c.0;
+                v[last] = v[last].clone().add_scalar(f32::INFINITY);
+                v.into_iter()
+            },
+            beta: 0.0,
+        });
+        let named = first_non_finite(&infinite).expect("the infinity is found");
+        assert_ne!(named, first);
+        assert!(named.starts_with("out"), "{named}");
     }
 }

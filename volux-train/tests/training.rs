@@ -300,3 +300,88 @@ fn a_folder_holding_a_run_is_refused_unless_resumed_or_forced() {
         "files not of a run are kept"
     );
 }
+
+/// Multiplies every float parameter by NaN.
+struct Poison;
+
+impl burn::module::ModuleMapper for Poison {
+    fn map_float<const D: usize>(
+        &mut self,
+        param: burn::module::Param<burn::tensor::Tensor<D>>,
+    ) -> burn::module::Param<burn::tensor::Tensor<D>> {
+        param.map(|t| t.mul_scalar(f32::NAN))
+    }
+}
+
+#[test]
+fn killed_runs_leftovers_are_swept_and_non_finite_weights_are_refused() {
+    use burn::module::Module;
+    let _one = ONE_RUN_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let c = config(dir.path(), TINY);
+    let run = dir.path().join("run");
+    let mut t = Trainer::new(c.clone(), options(&run, false, Some(2))).unwrap();
+    let _ = losses(&mut t);
+    drop(t);
+    let second = run.join("checkpoint-00000002");
+    assert!(second.join("state.toml").is_file());
+
+    // What kills leave: a checkpoint half deleted by an older version (no state.toml), one
+    // caught mid-deletion, a partial write of another step; and a folder that only looks like
+    // a checkpoint (it holds a file that is not one), which is not ours to delete.
+    let half = run.join("checkpoint-00000001");
+    std::fs::create_dir(&half).unwrap();
+    std::fs::copy(second.join("generator.bpk"), half.join("generator.bpk")).unwrap();
+    let deleting = run.join(".checkpoint-00000000.deleting");
+    std::fs::create_dir(&deleting).unwrap();
+    std::fs::write(deleting.join("optimizer_d.bpk"), b"x").unwrap();
+    let partial = run.join(".checkpoint-00000009.partial");
+    std::fs::create_dir(&partial).unwrap();
+    let foreign = run.join("checkpoint-00000003");
+    std::fs::create_dir(&foreign).unwrap();
+    std::fs::write(foreign.join("notes.txt"), "mine").unwrap();
+    assert_eq!(
+        checkpoint::list(&run).len(),
+        1,
+        "none of them is a checkpoint"
+    );
+
+    // The next save sweeps them.
+    let mut t = Trainer::new(c.clone(), options(&run, true, None)).unwrap();
+    let _ = losses(&mut t);
+    drop(t);
+    assert!(!half.exists() && !deleting.exists() && !partial.exists());
+    assert!(foreign.join("notes.txt").is_file());
+    let kept: Vec<u64> = checkpoint::list(&run).iter().map(|k| k.0).collect();
+    assert_eq!(kept, [2, 4]);
+    let hidden: Vec<_> = std::fs::read_dir(&run)
+        .unwrap()
+        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+        .filter(|n| n.starts_with('.'))
+        .collect();
+    assert!(hidden.is_empty(), "{hidden:?}");
+
+    // NaN weights in the EMA generator: sampling and resuming name the file and the parameter.
+    let last = run.join("checkpoint-00000004");
+    let (g, ..) = volux_train::training_loop::load_for_sampling(&last, BackendKind::Cpu).unwrap();
+    let ema = last.join("generator_ema.bpk");
+    g.map(&mut Poison).save_file(&ema).unwrap();
+    for e in [
+        volux_train::training_loop::load_for_sampling(&last, BackendKind::Cpu)
+            .map(drop)
+            .expect_err("sampling refused"),
+        Trainer::new(c, options(&run, true, None))
+            .map(drop)
+            .expect_err("resuming refused"),
+    ] {
+        let message = e.to_string();
+        assert!(
+            message.contains("generator_ema.bpk") && message.contains("NaN"),
+            "{message}"
+        );
+        assert!(matches!(
+            e,
+            TrainError::Checkpoint(checkpoint::CheckpointError::NonFinite { .. })
+        ));
+    }
+}
