@@ -585,3 +585,102 @@ fn train_bench_writes_a_per_phase_table_for_stage_2() {
     ]);
     assert!(!bad.status.success() && text(&bad).contains("--stage"));
 }
+
+#[test]
+fn the_shipped_model_samples_by_name_from_any_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_volux"))
+            .args(args)
+            .current_dir(dir.path())
+            .output()
+            .expect("run volux")
+    };
+    let o = run(&[
+        "sample",
+        "--checkpoint",
+        "quickstart",
+        "--seeds",
+        "0-1",
+        "--out",
+        "out",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("assets/models/quickstart"), "{t}");
+    assert!(dir.path().join("out/layers-sunrise.png").is_file(), "{t}");
+    assert!(
+        dir.path()
+            .join("out/exr/seed1-sunrise-normals.exr")
+            .is_file(),
+        "{t}"
+    );
+    // Its head as a mesh, in both formats; bad values are named.
+    let o = run(&[
+        "export",
+        "mesh",
+        "--checkpoint",
+        "quickstart",
+        "--seed",
+        "3",
+        "--resolution",
+        "32",
+        "--out",
+        "head.ply",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("triangles") && t.contains("frontal"), "{t}");
+    let ply = std::fs::read(dir.path().join("head.ply")).unwrap();
+    assert!(ply.starts_with(b"ply\nformat binary_little_endian 1.0\n"));
+    let o = run(&[
+        "export",
+        "mesh",
+        "--checkpoint",
+        "quickstart",
+        "--resolution",
+        "24",
+        "--threshold",
+        "5",
+        "--out",
+        "head.obj",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("iso-level 5.0000 (given"), "{t}");
+    let obj = std::fs::read_to_string(dir.path().join("head.obj")).unwrap();
+    assert!(obj.lines().any(|l| l.starts_with("vn ")));
+    for (flag, value, expected) in [
+        ("--resolution", "8", "--resolution 8"),
+        ("--threshold", "-1", "--threshold -1"),
+        ("--out", "head.stl", "head.stl"),
+    ] {
+        let mut args = vec![
+            "export",
+            "mesh",
+            "--checkpoint",
+            "quickstart",
+            "--out",
+            "x.ply",
+        ];
+        if flag == "--out" {
+            args[5] = value;
+        } else {
+            args.extend([flag, value]);
+        }
+        let o = run(&args);
+        let t = text(&o);
+        assert!(
+            !o.status.success() && t.contains(expected),
+            "{flag} {value}: {t}"
+        );
+    }
+    // A name that is neither a folder nor a shipped model lists the shipped ones.
+    let o = run(&["sample", "--checkpoint", "quickstrat", "--out", "out"]);
+    let t = text(&o);
+    assert!(!o.status.success());
+    assert!(
+        t.contains("quickstrat") && t.contains("shipped: quickstart"),
+        "{t}"
+    );
+}

@@ -8,8 +8,7 @@ use anyhow::{Context, bail};
 use clap::Args;
 use volux_eval::evaluate::{EvalOptions, evaluate};
 use volux_model::backend::BackendKind;
-use volux_train::checkpoint;
-use volux_train::training_loop::load_for_sampling;
+use volux_train::pretrained::load_for_sampling;
 
 use super::environment::environments;
 use super::sample::save_sheet;
@@ -19,7 +18,8 @@ const DEFAULT_ENVIRONMENTS: [&str; 3] = ["sunrise", "studio", "forest"];
 
 #[derive(Debug, Args)]
 pub struct EvalArgs {
-    /// A checkpoint folder, or a run folder (its newest checkpoint is used).
+    /// A checkpoint folder, a run folder (its newest checkpoint is used), or the name of a
+    /// model shipped in the binary (`quickstart`).
     #[arg(long)]
     pub checkpoint: PathBuf,
     /// Latents (and synthetic heads, and dataset images) per measurement.
@@ -71,12 +71,12 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     {
         bail!("--yaw-rad {y}: side views need a non-zero yaw within [-1.5, 1.5] radians");
     }
-    let (g, config, dir, device) = load_for_sampling(&args.checkpoint, args.backend)?;
-    let state = checkpoint::read_state(&dir)?;
+    let trained = load_for_sampling(&args.checkpoint, args.backend)?;
+    let (state, dir) = (&trained.state, &trained.origin);
     println!(
         "checkpoint {} ({} model, {:.2} kimg)",
         dir.display(),
-        config.model.preset,
+        trained.config.model.preset,
         state.images as f64 / 1000.0
     );
     let mut options = EvalOptions::new(environments(&args.hdri, &DEFAULT_ENVIRONMENTS)?);
@@ -86,9 +86,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     options.tolerance = args.tolerance;
     options.batch = args.batch;
     let evaluation = evaluate(
-        &g,
-        &device,
-        &config,
+        &trained.g,
+        &trained.device,
+        &trained.config,
         &dir.display().to_string(),
         state.images,
         &options,

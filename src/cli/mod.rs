@@ -5,6 +5,7 @@ mod data;
 mod environment;
 mod envmap;
 mod eval;
+mod export;
 mod model;
 mod plot;
 mod sample;
@@ -44,6 +45,10 @@ pub enum Command {
     /// Measure a checkpoint: multi-view and relighting consistency, geometry, sliced
     /// Wasserstein distance to the data, the same on the synthetic data; table, JSON, figures.
     Eval(eval::EvalArgs),
+    /// Export what a checkpoint makes for other tools: `volux export mesh` writes a head as a
+    /// PLY or OBJ mesh.
+    #[command(subcommand)]
+    Export(export::ExportCommand),
     /// Plot a run's losses and light-evaluation scores (`[output] eval_kimg`) against images
     /// and wall-clock minutes, as PNG; or several runs' scores against each other.
     Plot(plot::PlotArgs),
@@ -59,6 +64,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(args) => train::run(args),
         Command::Sample(args) => sample::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Export(cmd) => export::run(cmd),
         Command::Plot(args) => plot::run(args),
         Command::Backend(args) => backend::run(args),
     }

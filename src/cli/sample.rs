@@ -11,15 +11,16 @@ use volux_data::contact_sheet::ContactSheet;
 use volux_envmap::io;
 use volux_model::backend::BackendKind;
 use volux_train::animation::save_gif;
+use volux_train::pretrained::load_for_sampling;
 use volux_train::sampling::{self, SampleLayers};
-use volux_train::training_loop::load_for_sampling;
 
 use super::data::parse_seeds;
 use super::environment::environments;
 
 #[derive(Debug, Args)]
 pub struct SampleArgs {
-    /// A checkpoint folder, or a run folder (its newest checkpoint is used).
+    /// A checkpoint folder, a run folder (its newest checkpoint is used), or the name of a
+    /// model shipped in the binary (`quickstart`).
     #[arg(long)]
     pub checkpoint: PathBuf,
     /// Latent seeds: a range `0-7` or a list `1,5,9`.
@@ -113,18 +114,20 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
         })
         .transpose()?;
     let started = Instant::now();
-    let (g, config, dir, device) = load_for_sampling(&args.checkpoint, args.backend)?;
+    let trained = load_for_sampling(&args.checkpoint, args.backend)?;
+    let (g, config, device) = (&trained.g, &trained.config, &trained.device);
     println!(
-        "checkpoint {} ({} model)",
-        dir.display(),
-        config.model.preset
+        "checkpoint {} ({} model, {:.2} kimg)",
+        trained.origin.display(),
+        config.model.preset,
+        trained.state.images as f64 / 1000.0
     );
     let envs = environments(&args.hdri, &["sunrise"])?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let bg = config.data.albedo_background();
     let z_dim = config.generator().mapping.z_dim;
-    let z = sampling::latents(&seeds, z_dim, &device);
+    let z = sampling::latents(&seeds, z_dim, device);
     let n = seeds.len();
     let rad = f64::to_radians;
     let first_pose = (rad(args.yaw[0]), rad(args.pitch[0]));
@@ -132,7 +135,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
     for env in &envs {
         // Every layer, one row per seed.
         let layers =
-            sampling::render_under(&g, z.clone(), &vec![first_pose; n], &env.lights, 0.0, bg)?;
+            sampling::render_under(g, z.clone(), &vec![first_pose; n], &env.lights, 0.0, bg)?;
         save_sheet(
             &args.out.join(format!("layers-{}.png", env.name)),
             &sampling::grid(&layers),
@@ -164,7 +167,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
             .collect();
         let mut sheet = ContactSheet::new(s, s, views.len(), n);
         for (column, &pose) in views.iter().enumerate() {
-            let l = sampling::render_under(&g, z.clone(), &vec![pose; n], &env.lights, 0.0, bg)?;
+            let l = sampling::render_under(g, z.clone(), &vec![pose; n], &env.lights, 0.0, bg)?;
             for (row, tile) in l.relit.iter().enumerate() {
                 sheet.put(column, row, tile);
             }
@@ -178,7 +181,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
             .map(|f| {
                 let yaw = std::f64::consts::TAU * f as f64 / args.rotate_light as f64;
                 let l = sampling::render_under(
-                    &g,
+                    g,
                     z.clone(),
                     &vec![first_pose; n],
                     &env.lights,
@@ -195,16 +198,15 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
             .map(|f| {
                 let phase = std::f64::consts::TAU * f as f64 / args.rotate_camera as f64;
                 let pose = (rad(30.0) * phase.sin(), first_pose.1);
-                let l =
-                    sampling::render_under(&g, z.clone(), &vec![pose; n], &env.lights, 0.0, bg)?;
+                let l = sampling::render_under(g, z.clone(), &vec![pose; n], &env.lights, 0.0, bg)?;
                 Ok(strip(&l))
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
         save_frames(&args.out.join("rotate-camera.gif"), &frames)?;
     }
     if let Some((a, b, steps)) = interpolation {
-        let zi = sampling::interpolate(a, b, steps, z_dim, &device);
-        let l = sampling::render_under(&g, zi, &vec![first_pose; steps], &env.lights, 0.0, bg)?;
+        let zi = sampling::interpolate(a, b, steps, z_dim, device);
+        let l = sampling::render_under(g, zi, &vec![first_pose; steps], &env.lights, 0.0, bg)?;
         let sheet = strip(&l);
         save_sheet(&args.out.join(format!("interpolate-{a}-{b}.png")), &sheet)?;
         let s = l.side;

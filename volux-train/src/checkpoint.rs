@@ -27,11 +27,11 @@ use volux_envmap::io::{sync_dir, sync_file};
 pub const CHECKPOINT_FORMAT: u32 = 1;
 
 const GENERATOR: &str = "generator.bpk";
-const GENERATOR_EMA: &str = "generator_ema.bpk";
+pub const GENERATOR_EMA: &str = "generator_ema.bpk";
 const DISCRIMINATORS: &str = "discriminators.bpk";
 const OPTIMIZER_G: &str = "optimizer_g.bpk";
 const OPTIMIZER_D: &str = "optimizer_d.bpk";
-const STATE: &str = "state.toml";
+pub const STATE: &str = "state.toml";
 const PREFIX: &str = "checkpoint-";
 /// Every file a checkpoint folder holds.
 const FILES: [&str; 6] = [
@@ -289,9 +289,9 @@ pub fn load(dir: &Path, nets: Networks) -> Result<Networks, CheckpointError> {
         .d
         .try_load_record(module(DISCRIMINATORS)?)
         .map_err(|e| apply(DISCRIMINATORS, e))?;
-    finite(dir, GENERATOR, &g)?;
-    finite(dir, GENERATOR_EMA, &ema)?;
-    finite(dir, DISCRIMINATORS, &d)?;
+    finite(dir.join(GENERATOR), &g)?;
+    finite(dir.join(GENERATOR_EMA), &ema)?;
+    finite(dir.join(DISCRIMINATORS), &d)?;
     let opt = |o: ModuleOptimizer, name: &str| {
         let p = dir.join(name);
         o.load(&p).map_err(|e| file_error(&p, format!("{e:?}")))
@@ -311,17 +311,31 @@ pub fn load_ema(dir: &Path, ema: Generator) -> Result<Generator, CheckpointError
     let ema = ema
         .try_load_file(&p)
         .map_err(|e| file_error(&p, format!("{e:?}")))?;
-    finite(dir, GENERATOR_EMA, &ema)?;
+    finite(dir.join(GENERATOR_EMA), &ema)?;
+    Ok(ema)
+}
+
+/// Loads an EMA generator from the bytes of a `generator_ema.bpk` (a model embedded in the
+/// binary); `origin` names it in errors.
+pub fn load_ema_bytes(
+    origin: &Path,
+    bytes: &[u8],
+    ema: Generator,
+) -> Result<Generator, CheckpointError> {
+    let record =
+        burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes.to_vec()))
+            .map_err(|e| file_error(origin, format!("{e:?}")))?;
+    let ema = ema
+        .try_load_record(record)
+        .map_err(|e| file_error(origin, format!("{e:?}")))?;
+    finite(origin.to_path_buf(), &ema)?;
     Ok(ema)
 }
 
 /// Refuses a loaded module with a NaN or an infinity in any parameter.
-fn finite<M: Module>(dir: &Path, file: &str, module: &M) -> Result<(), CheckpointError> {
+fn finite<M: Module>(path: PathBuf, module: &M) -> Result<(), CheckpointError> {
     match first_non_finite(module) {
         None => Ok(()),
-        Some(parameter) => Err(CheckpointError::NonFinite {
-            path: dir.join(file),
-            parameter,
-        }),
+        Some(parameter) => Err(CheckpointError::NonFinite { path, parameter }),
     }
 }

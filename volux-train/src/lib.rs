@@ -15,6 +15,10 @@
 //! - [`run_folder`]: what in a run folder belongs to a run; refusing to mix two runs.
 //! - [`metrics`]: the JSON-lines metrics log.
 //! - [`bench`]: real training steps timed phase by phase, with FLOPs and the matmul peak.
+//! - [`mesh`]: shape export: marching cubes on one latent's density, albedo colours and exact
+//!   normals at the vertices, PLY and OBJ files.
+//! - [`pretrained`]: trained generators for sampling: checkpoints on disk and the models
+//!   shipped in the binary, by name.
 //! - [`sampling`]: latents from seeds, every layer of a sample, the sample grid;
 //!   [`animation`]: looping GIFs.
 
@@ -25,8 +29,10 @@ pub mod checkpoint;
 pub mod config;
 pub mod fake_poses;
 pub mod losses;
+pub mod mesh;
 pub mod metrics;
 pub mod networks;
+pub mod pretrained;
 pub mod progressive;
 pub mod run_folder;
 pub mod sampling;

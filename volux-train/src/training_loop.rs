@@ -56,6 +56,10 @@ pub enum TrainError {
     Model(#[from] GeneratorError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    #[error(
+        "no checkpoint or run folder at {path}, and no shipped model of that name (shipped: {shipped})"
+    )]
+    NoCheckpoint { path: PathBuf, shipped: String },
     #[error("sample grid")]
     Sample(#[from] sampling::SampleError),
     #[error("evaluating the EMA generator at {kimg:.2} kimg")]
@@ -618,19 +622,4 @@ impl Trainer {
             losses: self.averages.take(),
         }
     }
-}
-
-/// The EMA generator of the checkpoint at `path` (a checkpoint folder, or a run folder whose
-/// newest checkpoint is taken), its config, and the device it runs on.
-pub fn load_for_sampling(
-    path: &Path,
-    backend: BackendKind,
-) -> Result<(Generator, TrainConfig, PathBuf, Device), TrainError> {
-    let dir = checkpoint::resolve(path)?;
-    let state = checkpoint::read_state(&dir)?;
-    let config = TrainConfig::from_text(state.config.clone(), &state.config_path)?;
-    let device = backend.device()?;
-    let g = config.generator().init(&device)?;
-    let g = checkpoint::load_ema(&dir, g)?;
-    Ok((g, config, dir, device))
 }

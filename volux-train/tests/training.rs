@@ -363,11 +363,13 @@ fn killed_runs_leftovers_are_swept_and_non_finite_weights_are_refused() {
 
     // NaN weights in the EMA generator: sampling and resuming name the file and the parameter.
     let last = run.join("checkpoint-00000004");
-    let (g, ..) = volux_train::training_loop::load_for_sampling(&last, BackendKind::Cpu).unwrap();
+    let g = volux_train::pretrained::load_for_sampling(&last, BackendKind::Cpu)
+        .unwrap()
+        .g;
     let ema = last.join("generator_ema.bpk");
     g.map(&mut Poison).save_file(&ema).unwrap();
     for e in [
-        volux_train::training_loop::load_for_sampling(&last, BackendKind::Cpu)
+        volux_train::pretrained::load_for_sampling(&last, BackendKind::Cpu)
             .map(drop)
             .expect_err("sampling refused"),
         Trainer::new(c, options(&run, true, None))
