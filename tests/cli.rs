@@ -19,6 +19,47 @@ fn text(o: &Output) -> String {
     )
 }
 
+/// The DOM of `page` after headless Chromium loaded it (scripts run), or `None` where Chromium
+/// is not installed. `.ci/run` installs it and sets `VOLUX_REQUIRE_CHROMIUM=1`, which makes a
+/// missing browser a failure.
+fn headless_dom(page: &Path) -> Option<String> {
+    let browser = ["chromium", "chromium-browser"].into_iter().find(|b| {
+        Command::new(b)
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+    });
+    let Some(browser) = browser else {
+        assert!(
+            std::env::var_os("VOLUX_REQUIRE_CHROMIUM").is_none(),
+            "VOLUX_REQUIRE_CHROMIUM is set but no chromium is installed"
+        );
+        eprintln!("chromium not installed: the report page is not loaded in a browser");
+        return None;
+    };
+    let profile = tempfile::tempdir().unwrap();
+    let url = format!("file://{}", page.canonicalize().unwrap().display());
+    let o = Command::new(browser)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--virtual-time-budget=20000",
+            "--dump-dom",
+        ])
+        .arg(format!("--user-data-dir={}", profile.path().display()))
+        .arg(url)
+        .output()
+        .expect("run chromium");
+    assert!(o.status.success(), "chromium: {}", text(&o));
+    Some(String::from_utf8_lossy(&o.stdout).into_owned())
+}
+
 fn asset(name: &str) -> String {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("assets/hdri")
@@ -425,8 +466,9 @@ fn train_resume_and_sample_end_to_end() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(compare.join("compare-minutes.png").is_file());
 
-    // Sampling from the run folder takes its newest checkpoint.
-    let samples = dir.path().join("samples");
+    // Sampling from the run folder takes its newest checkpoint (written into the run folder,
+    // where the report below finds it).
+    let samples = run.join("samples");
     let o = volux(&[
         "sample",
         "--checkpoint",
@@ -449,13 +491,51 @@ fn train_resume_and_sample_end_to_end() {
         "layers-sunrise.png",
         "views-sunrise.png",
         "rotate-light.gif",
+        "rotate-light.mp4",
         "rotate-camera.gif",
         "interpolate-0-1.png",
         "interpolate-0-1.gif",
+        "interpolate-0-1.mp4",
         "exr/seed1-sunrise-specular.exr",
     ] {
         assert!(samples.join(f).is_file(), "{f} missing: {t}");
     }
+
+    // The run's page: self-contained, and loaded by a real browser with every image decoded
+    // and no script error.
+    let o = volux(&["report", run_s]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let page = run.join("report.html");
+    let html = std::fs::read_to_string(&page).unwrap();
+    for part in [
+        "<h2>Curves</h2>",
+        "<h2>Latest light evaluation</h2>",
+        "<h2>Sample grids over training</h2>",
+        "<h2>Samples</h2>",
+        "<h2>Config</h2>",
+        "data:video/mp4;base64,",
+        "data:image/gif;base64,",
+    ] {
+        assert!(html.contains(part), "{part} missing from the page");
+    }
+    assert!(!html.contains("src=\"http") && !html.contains("src=\"file"));
+    let images = html.matches("<img ").count();
+    assert!(images >= 8, "{images} images");
+    if let Some(dom) = headless_dom(&page) {
+        assert!(
+            dom.contains(&format!("data-images=\"{images}/{images}\"")),
+            "not every image decoded: {}",
+            &dom[dom.find("<body").unwrap_or(0)..][..200.min(dom.len())]
+        );
+        assert!(dom.contains("data-errors=\"0\""), "script errors");
+    }
+    let o = volux(&["report", dir.path().to_str().unwrap()]);
+    assert!(
+        !o.status.success() && text(&o).contains("not a run folder"),
+        "{}",
+        text(&o)
+    );
 
     // The measurements, on three latents in batches of two (and on the synthetic heads).
     let eval = dir.path().join("eval");
@@ -602,12 +682,29 @@ fn the_shipped_model_samples_by_name_from_any_folder() {
         "quickstart",
         "--seeds",
         "0-1",
+        "--rotate-light",
+        "3",
+        "--video",
+        "mp4",
+        "--fps",
+        "6",
         "--out",
         "out",
     ]);
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert!(t.contains("assets/models/quickstart"), "{t}");
+    assert!(
+        t.contains("rotate-light.mp4 (3 frames, 0.5 s at 6 fps)"),
+        "{t}"
+    );
+    assert!(!dir.path().join("out/rotate-light.gif").exists());
+    let o = run(&["sample", "--checkpoint", "quickstart", "--fps", "0"]);
+    assert!(
+        !o.status.success() && text(&o).contains("--fps 0"),
+        "{}",
+        text(&o)
+    );
     assert!(dir.path().join("out/layers-sunrise.png").is_file(), "{t}");
     assert!(
         dir.path()

@@ -8,6 +8,7 @@ mod eval;
 mod export;
 mod model;
 mod plot;
+mod report;
 mod sample;
 mod train;
 
@@ -40,7 +41,7 @@ pub enum Command {
     /// real training steps phase by phase.
     Train(train::TrainCommand),
     /// Render a checkpoint: layer grids, several cameras, EXR layers, rotating-light and
-    /// rotating-camera GIFs, latent interpolations.
+    /// rotating-camera animations and latent interpolations as GIF and MP4 (H.264).
     Sample(sample::SampleArgs),
     /// Measure a checkpoint: multi-view and relighting consistency, geometry, sliced
     /// Wasserstein distance to the data, the same on the synthetic data; table, JSON, figures.
@@ -52,6 +53,9 @@ pub enum Command {
     /// Plot a run's losses and light-evaluation scores (`[output] eval_kimg`) against images
     /// and wall-clock minutes, as PNG; or several runs' scores against each other.
     Plot(plot::PlotArgs),
+    /// One self-contained HTML page of a run (state, curves, the latest evaluation, grids over
+    /// time, samples, config) that opens offline in a browser.
+    Report(report::ReportArgs),
     /// Check that a compute backend works: a small forward and backward pass compared with the CPU.
     Backend(backend::BackendArgs),
 }
@@ -66,6 +70,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(args) => eval::run(args),
         Command::Export(cmd) => export::run(cmd),
         Command::Plot(args) => plot::run(args),
+        Command::Report(args) => report::run(args),
         Command::Backend(args) => backend::run(args),
     }
 }

@@ -13,6 +13,7 @@ use volux_model::backend::BackendKind;
 use volux_train::animation::save_gif;
 use volux_train::pretrained::load_for_sampling;
 use volux_train::sampling::{self, SampleLayers};
+use volux_train::video::save_mp4;
 
 use super::data::parse_seeds;
 use super::environment::environments;
@@ -45,15 +46,23 @@ pub struct SampleArgs {
     /// HDR environment maps (EXR or HDR) to light with; default: the shipped sunrise map.
     #[arg(long)]
     pub hdri: Vec<PathBuf>,
-    /// Frames of a GIF of the first environment turning once around the heads (0: none).
+    /// Frames of an animation of the first environment turning once around the heads (0: none).
     #[arg(long, default_value_t = 0)]
     pub rotate_light: usize,
-    /// Frames of a GIF of the camera swinging from -30 to 30 degrees of yaw and back (0: none).
+    /// Frames of an animation of the camera swinging from -30 to 30 degrees of yaw and back
+    /// (0: none).
     #[arg(long, default_value_t = 0)]
     pub rotate_camera: usize,
-    /// `A,B,N`: N images interpolating the latent of seed A to that of seed B (PNG and GIF).
+    /// `A,B,N`: N images interpolating the latent of seed A to that of seed B (a PNG strip and
+    /// an animation there and back).
     #[arg(long)]
     pub interpolate: Option<String>,
+    /// Frame rate of the animations (GIF and MP4), frames per second.
+    #[arg(long, default_value_t = 12.5)]
+    pub fps: f64,
+    /// Formats of the animations: `gif`, `mp4` (H.264), or both (`gif,mp4`).
+    #[arg(long, value_delimiter = ',', default_value = "gif,mp4")]
+    pub video: Vec<VideoFormat>,
     /// Compute backend: cpu or wgpu.
     #[arg(long, default_value = "cpu")]
     pub backend: BackendKind,
@@ -78,12 +87,47 @@ pub(super) fn save_sheet(path: &Path, sheet: &ContactSheet) -> anyhow::Result<()
     Ok(())
 }
 
-fn save_frames(path: &Path, frames: &[ContactSheet]) -> anyhow::Result<()> {
-    let (w, h) = (frames[0].width(), frames[0].height());
-    let pixels: Vec<Vec<[u8; 3]>> = frames.iter().map(|f| f.to_u8()).collect();
-    save_gif(path, w, h, &pixels, 80)?;
-    println!("wrote {} ({} frames)", path.display(), frames.len());
-    Ok(())
+/// A file format of the animations.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum VideoFormat {
+    Gif,
+    Mp4,
+}
+
+/// How animations are written: formats and frame rate.
+struct Animations<'a> {
+    formats: &'a [VideoFormat],
+    fps: f64,
+}
+
+impl Animations<'_> {
+    /// Writes `frames` as `<stem>.gif` and/or `<stem>.mp4` in `folder`.
+    fn save(&self, folder: &Path, stem: &str, frames: &[ContactSheet]) -> anyhow::Result<()> {
+        let (w, h) = (frames[0].width(), frames[0].height());
+        let pixels: Vec<Vec<[u8; 3]>> = frames.iter().map(|f| f.to_u8()).collect();
+        for format in self.formats {
+            let path = match format {
+                VideoFormat::Gif => {
+                    let path = folder.join(format!("{stem}.gif"));
+                    save_gif(&path, w, h, &pixels, (1000.0 / self.fps).round() as u32)?;
+                    path
+                }
+                VideoFormat::Mp4 => {
+                    let path = folder.join(format!("{stem}.mp4"));
+                    save_mp4(&path, w, h, &pixels, self.fps)?;
+                    path
+                }
+            };
+            println!(
+                "wrote {} ({} frames, {:.1} s at {} fps)",
+                path.display(),
+                frames.len(),
+                frames.len() as f64 / self.fps,
+                self.fps
+            );
+        }
+        Ok(())
+    }
 }
 
 pub fn run(args: SampleArgs) -> anyhow::Result<()> {
@@ -93,6 +137,13 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
             bail!("{flag} {v}: degrees must be finite and within [-90, 90]");
         }
     }
+    if !(args.fps.is_finite() && (1.0..=120.0).contains(&args.fps)) {
+        bail!("--fps {}: give a frame rate from 1 to 120", args.fps);
+    }
+    let animations = Animations {
+        formats: &args.video,
+        fps: args.fps,
+    };
     let interpolation = args
         .interpolate
         .as_deref()
@@ -191,7 +242,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
                 Ok(strip(&l))
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
-        save_frames(&args.out.join("rotate-light.gif"), &frames)?;
+        animations.save(&args.out, "rotate-light", &frames)?;
     }
     if args.rotate_camera > 0 {
         let frames = (0..args.rotate_camera)
@@ -202,7 +253,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
                 Ok(strip(&l))
             })
             .collect::<anyhow::Result<Vec<_>>>()?;
-        save_frames(&args.out.join("rotate-camera.gif"), &frames)?;
+        animations.save(&args.out, "rotate-camera", &frames)?;
     }
     if let Some((a, b, steps)) = interpolation {
         let zi = sampling::interpolate(a, b, steps, z_dim, device);
@@ -220,7 +271,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
                 f
             })
             .collect();
-        save_frames(&args.out.join(format!("interpolate-{a}-{b}.gif")), &frames)?;
+        animations.save(&args.out, &format!("interpolate-{a}-{b}"), &frames)?;
     }
     println!("done in {:.1} s", started.elapsed().as_secs_f64());
     Ok(())

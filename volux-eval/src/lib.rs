@@ -13,7 +13,8 @@
 //! - [`views`]: the layers the measurements read, from a generator or a synthetic head.
 //! - [`evaluate`]: the whole evaluation and its figures; [`report`]: the JSON report and table.
 //! - [`progress`]: the light evaluation taken during training (`[output] eval_kimg`);
-//!   [`plot`]: a run's losses and scores against images and minutes, as PNG.
+//!   [`plot`]: a run's losses and scores against images and minutes, as PNG;
+//!   [`run_page`]: one self-contained HTML page of a run (`volux report`).
 
 pub mod evaluate;
 pub mod geometry;
@@ -23,6 +24,7 @@ pub mod progress;
 pub mod relighting_consistency;
 pub mod report;
 pub mod reprojection;
+pub mod run_page;
 pub mod sample_quality;
 pub mod swd;
 pub mod views;

@@ -20,7 +20,7 @@
 //! - [`pretrained`]: trained generators for sampling: checkpoints on disk and the models
 //!   shipped in the binary, by name.
 //! - [`sampling`]: latents from seeds, every layer of a sample, the sample grid;
-//!   [`animation`]: looping GIFs.
+//!   [`animation`]: looping GIFs; [`video`]: MP4 (H.264) videos.
 
 pub mod adam;
 pub mod animation;
@@ -39,3 +39,4 @@ pub mod sampling;
 pub mod schedule;
 pub mod step;
 pub mod training_loop;
+pub mod video;

@@ -1,0 +1,36 @@
+//! `volux report RUN`: one self-contained HTML page of a run (state, curves, the latest
+//! evaluation, grids over time, samples, config) that opens offline.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Args;
+use volux_eval::run_page::save_run_page;
+
+#[derive(Debug, Args)]
+pub struct ReportArgs {
+    /// Run folder (its checkpoints, metrics.jsonl, grids/ and samples/ are read).
+    pub run: PathBuf,
+    /// Output file (default: RUN/report.html).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+pub fn run(args: ReportArgs) -> anyhow::Result<()> {
+    let out = args.out.unwrap_or_else(|| args.run.join("report.html"));
+    let name = args
+        .run
+        .canonicalize()
+        .ok()
+        .and_then(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
+        .unwrap_or_else(|| args.run.display().to_string());
+    save_run_page(&args.run, &format!("volux run {name}"), &out)
+        .with_context(|| format!("reporting {}", args.run.display()))?;
+    let size = std::fs::metadata(&out).map(|m| m.len()).unwrap_or(0);
+    println!(
+        "wrote {} ({:.1} MB, self-contained)",
+        out.display(),
+        size as f64 / 1e6
+    );
+    Ok(())
+}
