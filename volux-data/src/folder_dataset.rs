@@ -67,6 +67,15 @@ pub const MASK_FROM_NORMAL_LENGTH: f32 = 0.5;
 /// The name of the optional pose file in a dataset's root.
 pub const POSES_FILE: &str = "poses.csv";
 
+/// Largest accepted `|yaw|` in `poses.csv`, radians: one turn either way. Beyond it a value is
+/// a unit mistake (degrees), and far beyond it f32 cameras overflow.
+pub const MAX_YAW: f64 = std::f64::consts::TAU;
+
+/// Above this fraction of foreground normals facing away from the camera (`n_z < -0.1`), a
+/// normal map is refused: camera-space normals of a visible surface face the camera, so such
+/// a map is in another convention or an all-black image (which decodes to `(-1, -1, -1)`).
+pub const MAX_AWAY_FRACTION: f64 = 0.5;
+
 /// The longest list of names an error message spells out.
 const LISTED_NAMES: usize = 20;
 
@@ -216,6 +225,25 @@ pub enum FolderError {
     /// Photos with no row in `poses.csv`.
     #[error("{}: no row for {}", path.display(), name_list(stems))]
     PosesMissing { path: PathBuf, stems: Vec<String> },
+    /// A sample with no foreground at all: its mask (or, without a mask file, its normals) is
+    /// zero everywhere.
+    #[error(
+        "{}: no foreground pixel in `{stem}` (the mask is zero everywhere{}); remove the photo or fix its layers",
+        path.display(),
+        if *from_normals { ", and without a mask file it comes from the normals' length" } else { "" }
+    )]
+    NoForeground {
+        stem: String,
+        path: PathBuf,
+        from_normals: bool,
+    },
+    /// A normal map without usable camera-space normals in the foreground.
+    #[error("{}: {reason} in {percent:.0}% of the foreground; normals must be camera-space, +z towards the camera (docs/data.md)", path.display())]
+    BadNormals {
+        path: PathBuf,
+        reason: &'static str,
+        percent: f64,
+    },
     /// [`write_dataset`] writes into a new or empty folder only.
     #[error("{}: not empty; write a folder dataset into a new or empty folder", path.display())]
     NotEmpty { path: PathBuf },
@@ -526,6 +554,19 @@ impl FolderDataset {
                 .collect(),
         };
 
+        let foreground = mask.iter().filter(|&&m| m > 0.0).count();
+        if foreground == 0 {
+            return Err(FolderError::NoForeground {
+                stem: entry.stem.clone(),
+                path: entry.mask.clone().unwrap_or_else(|| entry.normals.clone()),
+                from_normals: entry.mask.is_none(),
+            });
+        }
+        let away = normals
+            .iter()
+            .zip(&mask)
+            .filter(|(n, m)| **m > 0.0 && length(**n) >= DEGENERATE_LENGTH && n[2] < -0.1)
+            .count();
         let (mut renormalised, mut degenerate) = (0, 0);
         for (n, &m) in normals.iter_mut().zip(&mask) {
             let len = length(*n);
@@ -538,6 +579,22 @@ impl FolderDataset {
                 renormalised += usize::from((len - 1.0).abs() > UNIT_TOLERANCE);
                 *n = n.map(|v| v / len);
             }
+        }
+
+        let percent = |count: usize| 100.0 * count as f64 / foreground as f64;
+        if degenerate == foreground {
+            return Err(FolderError::BadNormals {
+                path: entry.normals.clone(),
+                reason: "normals have no direction (zero length)",
+                percent: 100.0,
+            });
+        }
+        if away as f64 > MAX_AWAY_FRACTION * foreground as f64 {
+            return Err(FolderError::BadNormals {
+                path: entry.normals.clone(),
+                reason: "normals face away from the camera",
+                percent: percent(away),
+            });
         }
 
         Ok(FolderSample {
@@ -710,7 +767,17 @@ fn read_poses(
                 Err(error("is not finite"))
             }
         };
-        let yaw = value("yaw", yaw)?;
+        let yaw_value = value("yaw", yaw)?;
+        if yaw_value.abs() > MAX_YAW {
+            return Err(FolderError::PoseValue {
+                path: path.to_path_buf(),
+                line,
+                column: "yaw",
+                value: yaw.to_owned(),
+                reason: "must be within [-2 pi, 2 pi] radians (degrees given?)",
+            });
+        }
+        let yaw = yaw_value;
         let pitch_value = value("pitch", pitch)?;
         if pitch_value.abs() >= std::f64::consts::FRAC_PI_2 {
             return Err(FolderError::PoseValue {

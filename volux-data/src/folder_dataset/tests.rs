@@ -525,6 +525,14 @@ fn pose_files_are_checked_row_by_row() {
             "line 4: a second row for `a` (the first is on line 2)",
         ),
         ("name,yaw,pitch\nb,0,0\n", "no row for a, c"),
+        (
+            "name,yaw,pitch\na,1e300,0\n",
+            "line 2: yaw `1e300` must be within [-2 pi, 2 pi] radians (degrees given?)",
+        ),
+        (
+            "name,yaw,pitch\na,-30,0\n",
+            "line 2: yaw `-30` must be within [-2 pi, 2 pi] radians (degrees given?)",
+        ),
     ];
     for (text, want) in cases {
         fs::write(&poses, text).unwrap();
@@ -653,4 +661,58 @@ fn write_dataset_checks_before_writing() {
         assert_eq!(names.len(), 3, "{folder}: {names:?}");
     }
     assert_eq!(fs::read_dir(&root).unwrap().count(), 5);
+}
+
+#[test]
+fn samples_without_foreground_or_usable_normals_are_errors_naming_the_file() {
+    let (_dir, root, samples) = written();
+    let ds = || FolderDataset::open(&root).unwrap();
+    // An all-zero mask.
+    io::save_png(&root.join("masks/b.png"), W, H, &vec![[0u8; 3]; W * H]).unwrap();
+    let e = ds().load(1).unwrap_err().to_string();
+    assert!(
+        e.contains("masks/b.png") && e.contains("no foreground pixel in `b`"),
+        "{e}"
+    );
+    // All-zero EXR normals without a mask file: no foreground either, named by the normals.
+    fs::remove_file(root.join("masks/c.png")).unwrap();
+    io::save_exr(&root.join("normals/c.exr"), W, H, &vec![[0.0f32; 3]; W * H]).unwrap();
+    let e = ds().load(2).unwrap_err().to_string();
+    assert!(
+        e.contains("normals/c.exr") && e.contains("the normals' length"),
+        "{e}"
+    );
+    // With the mask, zero normals have no direction anywhere in the foreground.
+    let a = &samples[0];
+    io::save_exr(&root.join("normals/a.exr"), W, H, &vec![[0.0f32; 3]; W * H]).unwrap();
+    let e = ds().load(0).unwrap_err().to_string();
+    assert!(
+        e.contains("normals/a.exr") && e.contains("no direction (zero length) in 100%"),
+        "{e}"
+    );
+    // An all-black PNG decodes to (-1, -1, -1): facing away from the camera.
+    fs::remove_file(root.join("normals/a.exr")).unwrap();
+    io::save_png(&root.join("normals/a.png"), W, H, &vec![[0u8; 3]; W * H]).unwrap();
+    let e = ds().load(0).unwrap_err().to_string();
+    assert!(
+        e.contains("normals/a.png") && e.contains("face away from the camera in 100%"),
+        "{e}"
+    );
+    // World-space normals of a sphere seen from behind (z flipped) are refused too, while
+    // a few back-facing pixels (silhouette noise) are not.
+    let mut flipped = a.image.normals.clone();
+    for n in &mut flipped {
+        n[2] = -n[2];
+    }
+    fs::remove_file(root.join("normals/a.png")).unwrap();
+    io::save_exr(&root.join("normals/a.exr"), W, H, &flipped).unwrap();
+    let e = ds().load(0).unwrap_err().to_string();
+    assert!(e.contains("face away from the camera"), "{e}");
+    let mut noisy = a.image.normals.clone();
+    let fg: Vec<usize> = (0..W * H).filter(|&i| a.image.mask[i] > 0.0).collect();
+    for &i in fg.iter().take(fg.len() / 4) {
+        noisy[i][2] = -noisy[i][2].abs() - 0.2;
+    }
+    io::save_exr(&root.join("normals/a.exr"), W, H, &noisy).unwrap();
+    assert!(ds().load(0).is_ok());
 }
