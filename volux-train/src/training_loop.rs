@@ -71,7 +71,7 @@ pub enum TrainError {
     #[error("{path}: {message}")]
     Io { path: PathBuf, message: String },
     #[error(
-        "{count} steps in a row had non-finite losses or weights (last: {reason}); stopped at step {step}. The last good checkpoint is {}",
+        "{count} steps in a row had non-finite losses or weights (last: {reason}); stopped after step {step} (metrics.jsonl's count). The last good checkpoint is {}",
         last_good.as_ref().map_or("none (no checkpoint was written)".to_string(), |p| p.display().to_string())
     )]
     NonFinite {
@@ -535,7 +535,7 @@ impl Trainer {
             let (stage, fade) = (report.stage, report.fade.clone());
             on_event(Event::Step(report));
             if let Some(reason) = skipped {
-                tracing::warn!("step {} skipped: {reason}", self.state.step - 1);
+                tracing::warn!("{}", skipped_step_message(&self.state, &reason));
                 if self.state.nonfinite_in_row >= self.config.train.max_nonfinite {
                     return Err(TrainError::NonFinite {
                         count: self.state.nonfinite_in_row,
@@ -622,4 +622,14 @@ impl Trainer {
             losses: self.averages.take(),
         }
     }
+}
+
+/// The warning for a skipped step, in metrics.jsonl's count: step `N` is the `N`-th step
+/// taken, the one metrics.jsonl logs as `"step": N`, and the counters are those of the state
+/// right after it (which a checkpoint and metrics.jsonl's `skipped` also hold).
+pub fn skipped_step_message(state: &TrainState, reason: &str) -> String {
+    format!(
+        "step {} skipped ({} in a row, {} in all): {reason}",
+        state.step, state.nonfinite_in_row, state.skipped
+    )
 }

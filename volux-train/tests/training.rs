@@ -186,9 +186,18 @@ fn non_finite_steps_are_skipped_then_stop_the_run() {
     let mut t = Trainer::new(c.clone(), options(&out, false, Some(2))).unwrap();
     let initial = weights(&t);
     t.poison_steps(&[(0, Phase::Discriminator)]);
-    t.step().unwrap();
+    let report = t.step().unwrap();
     assert_eq!(weights(&t), initial, "a skipped step moved the generator");
     assert_eq!((t.state().skipped, t.state().images), (1, 0));
+    // The warning counts steps as metrics.jsonl does (this is its step 1).
+    let message = volux_train::training_loop::skipped_step_message(
+        t.state(),
+        report.skipped.as_deref().expect("skipped"),
+    );
+    assert!(
+        message.starts_with("step 1 skipped (1 in a row, 1 in all): "),
+        "{message}"
+    );
     t.poison_steps(&[(1, Phase::Generator)]);
     t.step().unwrap();
     assert_eq!(weights(&t), initial);
