@@ -3,7 +3,6 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
 use clap::Args;
 use volux_eval::run_page::save_run_page;
 
@@ -24,8 +23,7 @@ pub fn run(args: ReportArgs) -> anyhow::Result<()> {
         .ok()
         .and_then(|p| p.file_name().map(|n| n.to_string_lossy().into_owned()))
         .unwrap_or_else(|| args.run.display().to_string());
-    save_run_page(&args.run, &format!("volux run {name}"), &out)
-        .with_context(|| format!("reporting {}", args.run.display()))?;
+    save_run_page(&args.run, &format!("volux run {name}"), &out)?;
     let size = std::fs::metadata(&out).map(|m| m.len()).unwrap_or(0);
     println!(
         "wrote {} ({:.1} MB, self-contained)",
