@@ -89,6 +89,21 @@ pub enum EnvMapError {
     /// A tolerance that is not a positive finite number below 1.
     #[error("tolerance {0} must be in (0, 1)")]
     Tolerance(f64),
+    /// A tolerance so fine that the spherical-harmonic analysis would need more memory than
+    /// [`crate::preconvolve::MAX_ANALYSIS_BYTES`].
+    #[error(
+        "tolerance {tolerance:e}: the n={exponent} light map needs spherical harmonics to degree {band_limit}, whose analysis takes {:.1} GiB, over the {:.1} GiB limit; use a tolerance of {coarsest_allowed:.1e} or more (the default is 2e-3)",
+        *bytes as f64 / (1u64 << 30) as f64,
+        *limit as f64 / (1u64 << 30) as f64
+    )]
+    TooFine {
+        tolerance: f64,
+        exponent: u32,
+        band_limit: usize,
+        bytes: u64,
+        limit: u64,
+        coarsest_allowed: f64,
+    },
     /// The file's header claims more texels than any input may hold (checked before the
     /// pixels are allocated).
     #[error(

@@ -76,6 +76,39 @@ pub fn truncation_error(n: u32, band_limit: usize, taper: f64) -> f64 {
     (((total - kept).max(0.0) + bias) / total).sqrt()
 }
 
+/// Highest band limit a plan may have.
+pub const MAX_BAND_LIMIT: usize = 4096;
+
+/// The smallest band limit (1 to [`MAX_BAND_LIMIT`]) whose [`truncation_error`] is within
+/// `part`, and that error: the same sums as [`truncation_error`] in the same order, with the
+/// spectrum computed once and the kept energy carried from one band limit to the next, so the
+/// search costs `O(L taper L)` instead of `O(L^2)` spectra.
+pub fn band_limit(n: u32, part: f64, taper: f64) -> (usize, f64) {
+    let spectrum = phong_spectrum(n, MAX_BAND_LIMIT);
+    let energy: Vec<f64> = spectrum
+        .iter()
+        .enumerate()
+        .map(|(l, s)| (2 * l + 1) as f64 * s * s)
+        .collect();
+    let total = phong_energy(n) * 4.0 * PI;
+    let mut kept = energy[0];
+    let mut error = f64::INFINITY;
+    for band_limit in 1..=MAX_BAND_LIMIT {
+        kept += energy[band_limit];
+        let weights = taper_weights(band_limit, taper);
+        let bias: f64 = energy[..=band_limit]
+            .iter()
+            .zip(&weights)
+            .map(|(e, w)| e * (1.0 - w).powi(2))
+            .sum();
+        error = (((total - kept).max(0.0) + bias) / total).sqrt();
+        if error <= part {
+            return (band_limit, error);
+        }
+    }
+    (MAX_BAND_LIMIT, error)
+}
+
 /// The profile of a zonal kernel with coefficients `coeffs` at `t = cos(angle)`:
 /// `sum_l (2l + 1) / (4 pi) coeffs_l P_l(t)`.
 pub fn zonal_profile(coeffs: &[f64], t: f64, scratch: &mut Vec<f64>) -> f64 {
@@ -193,12 +226,7 @@ impl LobePlan {
 
     fn compute(exponent: u32, tolerance: f64, taper: f64, max_height: usize) -> LobePlan {
         let part = tolerance / 2f64.sqrt();
-        let mut band_limit = 1;
-        let mut truncation = truncation_error(exponent, band_limit, taper);
-        while truncation > part && band_limit < 4096 {
-            band_limit += 1;
-            truncation = truncation_error(exponent, band_limit, taper);
-        }
+        let (band_limit, truncation) = band_limit(exponent, part, taper);
         let weights = taper_weights(band_limit, taper);
         let coefficients: Vec<f64> = phong_spectrum(exponent, band_limit)
             .iter()
@@ -252,6 +280,24 @@ mod tests {
             }
         }
         out
+    }
+
+    #[test]
+    fn the_band_limit_search_equals_the_plain_loop() {
+        for n in [1, 16, 64, 512] {
+            for tolerance in [1e-1, 2e-3, 1e-4, 3e-6] {
+                for taper in [0.0, 0.5] {
+                    let part = tolerance / 2f64.sqrt();
+                    let mut plain = 1;
+                    while truncation_error(n, plain, taper) > part && plain < MAX_BAND_LIMIT {
+                        plain += 1;
+                    }
+                    let (fast, error) = band_limit(n, part, taper);
+                    assert_eq!(fast, plain, "n={n} tolerance={tolerance} taper={taper}");
+                    assert_eq!(error, truncation_error(n, plain, taper));
+                }
+            }
+        }
     }
 
     #[test]

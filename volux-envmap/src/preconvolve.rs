@@ -13,7 +13,7 @@ use crate::bright;
 use crate::envmap::EnvMap;
 use crate::error::EnvMapError;
 use crate::lightmap::{LightMap, LightMapSet};
-use crate::lobe::LobePlan;
+use crate::lobe::{self, LobePlan};
 use crate::sh;
 
 /// Largest Phong exponent accepted (its light map is 4096x2048 at the default tolerance).
@@ -21,6 +21,12 @@ pub const MAX_EXPONENT: u32 = 4096;
 
 /// Default relative RMS error budget of a light map, for a point light (the worst case).
 pub const DEFAULT_TOLERANCE: f64 = 2e-3;
+
+/// Most memory the spherical-harmonic analyses of one preconvolution may plan (the map and
+/// the map without its bright texels, [`crate::sh::analysis_bytes`] each); a finer tolerance is
+/// refused before anything is allocated. At the default tolerance they take a few MiB; 1e-5
+/// takes about 0.2 GiB with 2 threads.
+pub const MAX_ANALYSIS_BYTES: u64 = 2 << 30;
 
 /// Default fraction of each lobe's band that is tapered by a raised cosine.
 pub const DEFAULT_TAPER: f64 = 0.5;
@@ -77,6 +83,37 @@ impl PreconvolveOptions {
         }
         if !(0.0..1.0).contains(&self.taper) {
             return Err(EnvMapError::Taper(self.taper));
+        }
+        // Only the band limits matter here, which are cheap to find (no profile tables).
+        let fits = |tolerance: f64| {
+            let part = tolerance / 2f64.sqrt();
+            let (exponent, band_limit) = self
+                .exponents
+                .iter()
+                .map(|&n| (n, lobe::band_limit(n, part, self.taper).0))
+                .max_by_key(|&(_, l)| l)
+                .expect("exponents checked non-empty");
+            let bytes = 2 * sh::analysis_bytes(band_limit);
+            (bytes <= MAX_ANALYSIS_BYTES, exponent, band_limit, bytes)
+        };
+        let (ok, exponent, band_limit, bytes) = fits(self.tolerance);
+        if !ok {
+            // The finest tolerance that fits, on a grid of 10^(1/10) steps (bisected: whether
+            // a tolerance fits only improves as it grows).
+            let grid: Vec<f64> = (1..)
+                .map(|k| self.tolerance * 10f64.powf(k as f64 / 10.0))
+                .take_while(|&t| t < 1.0)
+                .collect();
+            let first = grid.partition_point(|&t| !fits(t).0);
+            let coarsest_allowed = grid.get(first).copied().unwrap_or(DEFAULT_TOLERANCE);
+            return Err(EnvMapError::TooFine {
+                tolerance: self.tolerance,
+                exponent,
+                band_limit,
+                bytes,
+                limit: MAX_ANALYSIS_BYTES,
+                coarsest_allowed,
+            });
         }
         Ok(())
     }

@@ -104,75 +104,92 @@ pub fn analyse(map: &EnvMap, lmax: usize, quad_tol: f64) -> ShCoeffs {
         })
         .collect();
 
-    // Fixed blocks of rows, summed in order, so the result does not depend on thread timing.
+    // Fixed blocks of rows, summed in order, so the result does not depend on thread timing;
+    // at most `ANALYSIS_BLOCKS_IN_FLIGHT` partial sums exist at once (each holds every
+    // coefficient), so memory does not grow with the number of blocks.
     let blocks = h.min(64);
-    let partials: Vec<Option<Vec<[Complex64; 3]>>> = (0..blocks)
-        .into_par_iter()
-        .map(|b| {
-            let rows = (b * h / blocks)..((b + 1) * h / blocks);
-            let mut acc: Option<Vec<[Complex64; 3]>> = None;
-            let mut spectrum = vec![vec![Complex64::default(); w]; 3];
-            let mut scratch = vec![Complex64::default(); fft.get_inplace_scratch_len()];
-            let mut legendre = vec![0.0; n];
-            let mut ring = vec![0.0; n];
-            for y in rows {
-                let row = map.row(y);
-                if row.iter().all(|c| c.iter().all(|v| *v == 0.0)) {
-                    continue;
-                }
-                for (c, s) in spectrum.iter_mut().enumerate() {
-                    for (z, texel) in s.iter_mut().zip(row) {
-                        *z = Complex64::new(f64::from(texel[c]), 0.0);
+    let mut coeffs = vec![[Complex64::default(); 3]; n];
+    let block_ids: Vec<usize> = (0..blocks).collect();
+    for group in block_ids.chunks(analysis_blocks_in_flight()) {
+        let partials: Vec<Option<Vec<[Complex64; 3]>>> = group
+            .par_iter()
+            .map(|&b| {
+                let rows = (b * h / blocks)..((b + 1) * h / blocks);
+                let mut acc: Option<Vec<[Complex64; 3]>> = None;
+                let mut spectrum = vec![vec![Complex64::default(); w]; 3];
+                let mut scratch = vec![Complex64::default(); fft.get_inplace_scratch_len()];
+                let mut legendre = vec![0.0; n];
+                let mut ring = vec![0.0; n];
+                for y in rows {
+                    let row = map.row(y);
+                    if row.iter().all(|c| c.iter().all(|v| *v == 0.0)) {
+                        continue;
                     }
-                    fft.process_with_scratch(s, &mut scratch);
-                }
-                // Polar integral of each Pbar_lm over the row.
-                let (t0, t1) = (dtheta * y as f64, dtheta * (y + 1) as f64);
-                let (mid, half) = (0.5 * (t0 + t1), 0.5 * (t1 - t0));
-                ring.iter_mut().for_each(|r| *r = 0.0);
-                let mut orders = 0;
-                for (x, wq) in gx.iter().zip(&gw) {
-                    let theta = mid + half * x;
-                    let (s, c) = theta.sin_cos();
-                    let filled = table.eval(c, s, &mut legendre);
-                    orders = orders.max(filled);
-                    let weight = half * wq * s;
-                    let end = if filled > lmax {
-                        n
-                    } else {
-                        table.index(filled, filled)
-                    };
-                    for (r, p) in ring[..end].iter_mut().zip(&legendre[..end]) {
-                        *r += weight * p;
+                    for (c, s) in spectrum.iter_mut().enumerate() {
+                        for (z, texel) in s.iter_mut().zip(row) {
+                            *z = Complex64::new(f64::from(texel[c]), 0.0);
+                        }
+                        fft.process_with_scratch(s, &mut scratch);
                     }
-                }
-                // The constant term exactly: the row's solid angle over the azimuth.
-                ring[0] = (t0.cos() - t1.cos()) * (1.0 / (4.0 * PI)).sqrt();
-                let acc = acc.get_or_insert_with(|| vec![[Complex64::default(); 3]; n]);
-                for m in 0..orders.min(lmax + 1) {
-                    let f: [Complex64; 3] =
-                        std::array::from_fn(|c| spectrum[c][m % w] * azimuth[m]);
-                    let base = table.index(m, m);
-                    for (k, a) in acc[base..base + (lmax + 1 - m)].iter_mut().enumerate() {
-                        let r = ring[base + k];
-                        for c in 0..3 {
-                            a[c] += f[c] * r;
+                    // Polar integral of each Pbar_lm over the row.
+                    let (t0, t1) = (dtheta * y as f64, dtheta * (y + 1) as f64);
+                    let (mid, half) = (0.5 * (t0 + t1), 0.5 * (t1 - t0));
+                    ring.iter_mut().for_each(|r| *r = 0.0);
+                    let mut orders = 0;
+                    for (x, wq) in gx.iter().zip(&gw) {
+                        let theta = mid + half * x;
+                        let (s, c) = theta.sin_cos();
+                        let filled = table.eval(c, s, &mut legendre);
+                        orders = orders.max(filled);
+                        let weight = half * wq * s;
+                        let end = if filled > lmax {
+                            n
+                        } else {
+                            table.index(filled, filled)
+                        };
+                        for (r, p) in ring[..end].iter_mut().zip(&legendre[..end]) {
+                            *r += weight * p;
+                        }
+                    }
+                    // The constant term exactly: the row's solid angle over the azimuth.
+                    ring[0] = (t0.cos() - t1.cos()) * (1.0 / (4.0 * PI)).sqrt();
+                    let acc = acc.get_or_insert_with(|| vec![[Complex64::default(); 3]; n]);
+                    for m in 0..orders.min(lmax + 1) {
+                        let f: [Complex64; 3] =
+                            std::array::from_fn(|c| spectrum[c][m % w] * azimuth[m]);
+                        let base = table.index(m, m);
+                        for (k, a) in acc[base..base + (lmax + 1 - m)].iter_mut().enumerate() {
+                            let r = ring[base + k];
+                            for c in 0..3 {
+                                a[c] += f[c] * r;
+                            }
                         }
                     }
                 }
-            }
-            acc
-        })
-        .collect();
-    let mut coeffs = vec![[Complex64::default(); 3]; n];
-    for part in partials.into_iter().flatten() {
-        for (a, p) in coeffs.iter_mut().zip(part) {
-            for c in 0..3 {
-                a[c] += p[c];
+                acc
+            })
+            .collect();
+        for part in partials.into_iter().flatten() {
+            for (a, p) in coeffs.iter_mut().zip(part) {
+                for c in 0..3 {
+                    a[c] += p[c];
+                }
             }
         }
     }
     ShCoeffs { table, coeffs }
+}
+
+/// Partial sums of [`analyse`] held at once: one per thread.
+pub fn analysis_blocks_in_flight() -> usize {
+    rayon::current_num_threads().max(1)
+}
+
+/// Bytes [`analyse`] holds at its peak for degree `lmax`: the result and one partial sum per
+/// block in flight, each three complex numbers per coefficient.
+pub fn analysis_bytes(lmax: usize) -> u64 {
+    let n = ((lmax + 1) * (lmax + 2) / 2) as u64;
+    (analysis_blocks_in_flight() as u64 + 1) * n * std::mem::size_of::<[Complex64; 3]>() as u64
 }
 
 /// Evaluates `f = sum_lm kernel_l a_lm Y_lm` (degrees `l < kernel.len()`) at the texel centres

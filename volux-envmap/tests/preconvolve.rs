@@ -285,3 +285,35 @@ fn light_maps_save_as_exr_and_contact_sheet() {
     assert_eq!(l16.texels, lm.texels());
     assert!(dir.path().join("light_maps.png").exists());
 }
+
+#[test]
+fn tolerances_too_fine_for_memory_are_refused_before_allocating() {
+    let map = EnvMap::new(8, 4, vec![[1.0; 3]; 32]).unwrap();
+    for tolerance in [1e-6, 1e-9, 1e-300] {
+        let mut o = options(&[1, 16]);
+        o.tolerance = tolerance;
+        let e = preconvolve(&map, &o).unwrap_err();
+        assert!(matches!(e, EnvMapError::TooFine { .. }), "{e:?}");
+        let message = e.to_string();
+        assert!(
+            message.contains("degree 4096") && message.contains("GiB limit"),
+            "{message}"
+        );
+        // The suggested tolerance is accepted, and a tenth of a decade finer is not.
+        let EnvMapError::TooFine {
+            coarsest_allowed, ..
+        } = e
+        else {
+            unreachable!()
+        };
+        o.tolerance = coarsest_allowed;
+        assert!(o.validate().is_ok(), "{coarsest_allowed}");
+        o.tolerance = coarsest_allowed / 10f64.powf(0.1);
+        assert!(o.validate().is_err(), "{coarsest_allowed}");
+    }
+    // What the analysis plans at the finest allowed tolerance stays within the limit.
+    let lmax = volux_envmap::lobe::band_limit(1, 5e-6 / 2f64.sqrt(), 0.5).0;
+    assert!(
+        2 * volux_envmap::sh::analysis_bytes(lmax) <= volux_envmap::preconvolve::MAX_ANALYSIS_BYTES
+    );
+}
