@@ -8,7 +8,9 @@
 //!   shard size and, per finished shard, its file name and SHA-256.
 //! - A build writes each shard atomically (temporary name, then rename) and rewrites the
 //!   manifest after each shard, so an interrupted build resumes: finished shards whose file
-//!   still has its hash are kept, the rest are made. A changed fingerprint or shard size makes
+//!   still has its hash are kept, the rest are made. Reading checks each shard's hash once
+//!   per process, before its first example is used, so a file changed after the build is an
+//!   error naming it, not silently different training data. A changed fingerprint or shard size makes
 //!   every shard stale; a larger example count only adds shards. Stale files are removed.
 
 use std::fs;
@@ -320,6 +322,9 @@ pub fn build(
 pub struct ExampleCache {
     dir: PathBuf,
     manifest: Manifest,
+    /// Per shard, whether its file still has the manifest's SHA-256: checked once per process,
+    /// the first time one of its examples is read.
+    verified: Vec<std::sync::OnceLock<Result<(), String>>>,
 }
 
 impl ExampleCache {
@@ -364,9 +369,11 @@ impl ExampleCache {
                 });
             }
         }
+        let verified = manifest.shards.iter().map(|_| Default::default()).collect();
         Ok(ExampleCache {
             dir: dir.to_path_buf(),
             manifest,
+            verified,
         })
     }
 
@@ -391,8 +398,23 @@ impl ExampleCache {
             });
         }
         let size = self.manifest.spec.shard_size as u64;
-        let entry = &self.manifest.shards[(index / size) as usize];
+        let shard = (index / size) as usize;
+        let entry = &self.manifest.shards[shard];
         let path = self.dir.join(&entry.file);
+        let intact = self.verified[shard].get_or_init(|| match file_sha256(&path) {
+            Ok(h) if h == entry.sha256 => Ok(()),
+            Ok(h) => Err(format!(
+                "SHA-256 {h} differs from the manifest's {}: the file changed after the build; run `volux data build` again",
+                entry.sha256
+            )),
+            Err(e) => Err(e.to_string()),
+        });
+        if let Err(message) = intact {
+            return Err(CacheError::Corrupt {
+                path,
+                message: message.clone(),
+            });
+        }
         let (side, factor) = (self.manifest.side, self.manifest.factor);
         let bytes_per = example_floats(side, factor) * 4;
         let mut file = fs::File::open(&path).map_err(io_error(&path))?;
@@ -442,6 +464,35 @@ mod tests {
         let text = format!("seed = {seed}\nresolution = 8\nvolume_resolution = 4");
         let config: DataConfig = toml::from_str(&text).unwrap();
         Dataset::new(&config, lights).unwrap()
+    }
+
+    #[test]
+    fn a_shard_changed_after_the_build_is_refused_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dataset(2);
+        let spec = CacheSpec {
+            examples: 4,
+            shard_size: 2,
+        };
+        build(dir.path(), &data, "fp", spec, &|_, _| {}).unwrap();
+        // One flipped byte in shard 1's data: the size is right, so opening succeeds.
+        let shard = dir.path().join(shard_name(1));
+        let mut bytes = fs::read(&shard).unwrap();
+        let last = bytes.len() - 1;
+        bytes[last] ^= 0x40;
+        fs::write(&shard, bytes).unwrap();
+        let cache = ExampleCache::open(dir.path()).unwrap();
+        assert!(cache.example(0).is_ok(), "shard 0 is intact");
+        let e = cache.example(3).unwrap_err().to_string();
+        assert!(
+            e.contains("shard-00001.bin")
+                && e.contains("SHA-256")
+                && e.contains("volux data build"),
+            "{e}"
+        );
+        // A rebuild repairs it.
+        build(dir.path(), &data, "fp", spec, &|_, _| {}).unwrap();
+        assert!(ExampleCache::open(dir.path()).unwrap().example(3).is_ok());
     }
 
     #[test]
