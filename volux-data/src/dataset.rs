@@ -126,6 +126,10 @@ pub struct DataConfig {
     pub cache: Option<CacheConfig>,
 }
 
+/// Largest `resolution` of a dataset: an example of 2048x2048 already takes about 300 MiB of
+/// layers.
+pub const MAX_RESOLUTION: usize = 2048;
+
 impl DataConfig {
     /// The background as an albedo (linear): what the generator composites its albedo over.
     pub fn albedo_background(&self) -> [f32; 3] {
@@ -135,6 +139,11 @@ impl DataConfig {
     /// `resolution / volume_resolution`, checked.
     pub fn factor(&self) -> Result<usize, DataError> {
         let (hi, lo) = (self.resolution, self.volume_resolution);
+        if hi > MAX_RESOLUTION {
+            return Err(DataError::Config(format!(
+                "resolution = {hi} exceeds {MAX_RESOLUTION} pixels per side (the paper's largest is 256)"
+            )));
+        }
         if lo == 0 || hi == 0 || !hi.is_multiple_of(lo) {
             return Err(DataError::Config(format!(
                 "resolution = {hi} must be a positive multiple of volume_resolution = {lo}"
@@ -614,6 +623,8 @@ mod tests {
         };
         let sizes = bad("resolution = 30\nvolume_resolution = 8");
         assert!(sizes.contains("resolution = 30") && sizes.contains("volume_resolution = 8"));
+        let huge = bad("resolution = 1048576\nvolume_resolution = 32");
+        assert!(huge.contains("resolution = 1048576 exceeds 2048"), "{huge}");
         assert!(bad("background = [0.0, 2.0, 0.0]").contains("background[1]"));
         assert!(bad("[source]\nkind = \"synthetic\"\nidentities = 0").contains("identities"));
         assert!(bad("[source]\nkind = \"synthetic\"\nsupersample = 9").contains("supersample"));
