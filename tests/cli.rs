@@ -501,44 +501,9 @@ fn train_resume_and_sample_end_to_end() {
         assert!(samples.join(f).is_file(), "{f} missing: {t}");
     }
 
-    // The run's page: self-contained, and loaded by a real browser with every image decoded
-    // and no script error.
-    let o = volux(&["report", run_s]);
-    let t = text(&o);
-    assert!(o.status.success(), "{t}");
-    let page = run.join("report.html");
-    let html = std::fs::read_to_string(&page).unwrap();
-    for part in [
-        "<h2>Curves</h2>",
-        "<h2>Latest light evaluation</h2>",
-        "<h2>Sample grids over training</h2>",
-        "<h2>Samples</h2>",
-        "<h2>Config</h2>",
-        "data:video/mp4;base64,",
-        "data:image/gif;base64,",
-    ] {
-        assert!(html.contains(part), "{part} missing from the page");
-    }
-    assert!(!html.contains("src=\"http") && !html.contains("src=\"file"));
-    let images = html.matches("<img ").count();
-    assert!(images >= 8, "{images} images");
-    if let Some(dom) = headless_dom(&page) {
-        assert!(
-            dom.contains(&format!("data-images=\"{images}/{images}\"")),
-            "not every image decoded: {}",
-            &dom[dom.find("<body").unwrap_or(0)..][..200.min(dom.len())]
-        );
-        assert!(dom.contains("data-errors=\"0\""), "script errors");
-    }
-    let o = volux(&["report", dir.path().to_str().unwrap()]);
-    assert!(
-        !o.status.success() && text(&o).contains("not a run folder"),
-        "{}",
-        text(&o)
-    );
-
-    // The measurements, on three latents in batches of two (and on the synthetic heads).
-    let eval = dir.path().join("eval");
+    // The measurements, on three latents in batches of two (and on the synthetic heads), in
+    // the run folder, where the report below finds them.
+    let eval = run.join("eval");
     let o = volux(&[
         "eval",
         "--checkpoint",
@@ -582,6 +547,43 @@ fn train_resume_and_sample_end_to_end() {
     ] {
         assert!(eval.join(format!("{f}.png")).is_file(), "{f} missing: {t}");
     }
+    // The run's page: self-contained, and loaded by a real browser with every image decoded
+    // and no script error.
+    let o = volux(&["report", run_s]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let page = run.join("report.html");
+    let html = std::fs::read_to_string(&page).unwrap();
+    for part in [
+        "<h2>Curves</h2>",
+        "<h2>Latest light evaluation</h2>",
+        "<h2>Sample grids over training</h2>",
+        "<h2>Samples</h2>",
+        "<h2>Evaluation</h2>",
+        "Sliced Wasserstein",
+        "<h2>Config</h2>",
+        "data:video/mp4;base64,",
+        "data:image/gif;base64,",
+    ] {
+        assert!(html.contains(part), "{part} missing from the page");
+    }
+    assert!(!html.contains("src=\"http") && !html.contains("src=\"file"));
+    let images = html.matches("<img ").count();
+    assert!(images >= 8, "{images} images");
+    if let Some(dom) = headless_dom(&page) {
+        assert!(
+            dom.contains(&format!("data-images=\"{images}/{images}\"")),
+            "not every image decoded: {}",
+            &dom[dom.find("<body").unwrap_or(0)..][..200.min(dom.len())]
+        );
+        assert!(dom.contains("data-errors=\"0\""), "script errors");
+    }
+    let o = volux(&["report", dir.path().to_str().unwrap()]);
+    assert!(
+        !o.status.success() && text(&o).contains("not a run folder"),
+        "{}",
+        text(&o)
+    );
     let bad = volux(&["eval", "--checkpoint", run_s, "--yaw-rad", "0"]);
     assert!(
         !bad.status.success() && text(&bad).contains("--yaw-rad 0"),

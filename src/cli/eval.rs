@@ -95,7 +95,10 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     )?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
-    print!("{}", evaluation.report.to_table());
+    let table = evaluation.report.to_table();
+    print!("{table}");
+    let txt = args.out.join("eval.txt");
+    std::fs::write(&txt, &table).with_context(|| format!("writing {}", txt.display()))?;
     let json = args.out.join("eval.json");
     let text = serde_json::to_string_pretty(&evaluation.report)?;
     std::fs::write(&json, text + "\n").with_context(|| format!("writing {}", json.display()))?;

@@ -6,7 +6,8 @@
 //! What the page holds, each section only when the run has it: the newest checkpoint's state
 //! (step, images, wall time, skipped steps), the loss and score curves against images and
 //! minutes (`volux plot`'s PNGs, written to `RUN/plots/` on the way), the latest light
-//! evaluation against the data's own scores, the sample grids over time (up to
+//! evaluation against the data's own scores, the table and figures of a `volux eval --out
+//! RUN/eval`, the sample grids over time (up to
 //! [`MAX_GRIDS`], evenly spaced, the first and the last included), every GIF, MP4 and PNG a
 //! `volux sample --out RUN/samples` left, and the config the run was trained with.
 //!
@@ -28,6 +29,9 @@ pub const MAX_GRIDS: usize = 8;
 
 /// Where `volux sample` output is looked for in a run folder.
 pub const SAMPLES: &str = "samples";
+
+/// Where `volux eval` output (`eval.txt` and its figures) is looked for in a run folder.
+pub const EVAL: &str = "eval";
 
 /// Why a report cannot be made.
 #[derive(Debug, thiserror::Error)]
@@ -222,6 +226,24 @@ pub fn run_page(run: &Path, title: &str) -> Result<String, RunPageError> {
                     .map_or(String::new(), |m| format!(", {m:.1} minutes"))
             );
             eval_table(&mut html, &last.values);
+        }
+    }
+    let eval = run.join(EVAL);
+    let table = eval.join("eval.txt");
+    if table.is_file() {
+        section(&mut html, "Evaluation");
+        let text = String::from_utf8_lossy(&read(&table)?).into_owned();
+        let _ = writeln!(
+            html,
+            "<p><code>volux eval --out RUN/{EVAL}</code>:</p>\n<pre>{}</pre>",
+            escape(&text)
+        );
+        for png in files(&eval, &["png"]) {
+            let name = png
+                .file_stem()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            figure(&mut html, &data_uri("image/png", &read(&png)?), &name, None);
         }
     }
     let grids: Vec<PathBuf> = files(&run.join(GRIDS), &["png"])
