@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::relighting::{DEFAULT_SPECULAR_WEIGHTS, relight};
+use volux_envmap::EnvMapError;
 use volux_envmap::direction::{self, Dir};
 use volux_envmap::{EnvMap, LightMap, PreconvolveOptions, preconvolve};
 use volux_model::ray_sampling::{CameraConfig, camera_basis, camera_rays};

@@ -1,0 +1,135 @@
+//! Writing samples as a folder dataset (what `volux data` and the tests make datasets with).
+
+use std::collections::BTreeSet;
+use std::fmt::Write as _;
+use std::fs;
+use std::path::Path;
+
+use volux_envmap::EnvMapError;
+use volux_envmap::io;
+
+use super::{ALBEDO, FolderError, FolderSample, MASKS, NORMALS, PHOTOS, POSES_FILE};
+
+/// Writes `samples` as a folder dataset at `root`, which must be new or empty: photos and
+/// masks as 8-bit PNG, albedo and normals as f32 OpenEXR (lossless), and `poses.csv` with
+/// every pose (written exactly). Every file is written atomically (a temporary name, then a
+/// rename). All samples are checked before anything is written.
+pub fn write_dataset(root: &Path, samples: &[FolderSample]) -> Result<(), FolderError> {
+    if samples.is_empty() {
+        return Err(FolderError::NothingToWrite {
+            root: root.to_path_buf(),
+        });
+    }
+    let mut seen = BTreeSet::new();
+    for sample in samples {
+        check_sample(sample)?;
+        if !seen.insert(sample.stem.as_str()) {
+            return Err(FolderError::InvalidSample {
+                stem: sample.stem.clone(),
+                reason: "two samples have this name".into(),
+            });
+        }
+    }
+    let io_err = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| FolderError::Io { path, source }
+    };
+    if root.exists() {
+        if !root.is_dir() {
+            return Err(FolderError::NotAFolder {
+                path: root.to_path_buf(),
+            });
+        }
+        if fs::read_dir(root).map_err(io_err(root))?.next().is_some() {
+            return Err(FolderError::NotEmpty {
+                path: root.to_path_buf(),
+            });
+        }
+    }
+    for layer in [PHOTOS, ALBEDO, NORMALS, MASKS] {
+        let dir = root.join(layer.folder);
+        fs::create_dir_all(&dir).map_err(io_err(&dir))?;
+    }
+    let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+    let mut csv = String::from("name,yaw,pitch\n");
+    for s in samples {
+        let (w, h, stem) = (s.image.width, s.image.height, &s.stem);
+        let photo: Vec<[u8; 3]> = s.photo.iter().map(|c| c.map(to_u8)).collect();
+        io::save_png(&root.join(format!("photos/{stem}.png")), w, h, &photo)?;
+        io::save_exr(
+            &root.join(format!("albedo/{stem}.exr")),
+            w,
+            h,
+            &s.image.albedo,
+        )?;
+        io::save_exr(
+            &root.join(format!("normals/{stem}.exr")),
+            w,
+            h,
+            &s.image.normals,
+        )?;
+        let mask: Vec<[u8; 3]> = s.image.mask.iter().map(|&m| [to_u8(m); 3]).collect();
+        io::save_png(&root.join(format!("masks/{stem}.png")), w, h, &mask)?;
+        let (yaw, pitch) = s.image.pose;
+        let _ = writeln!(csv, "{stem},{yaw},{pitch}");
+    }
+    let poses = root.join(POSES_FILE);
+    io::write_atomically(&poses, |tmp| {
+        fs::write(tmp, &csv).map_err(|source| EnvMapError::Io {
+            path: poses.clone(),
+            source,
+        })
+    })?;
+    Ok(())
+}
+
+/// Why [`write_dataset`] cannot write `sample`, if it cannot.
+fn check_sample(sample: &FolderSample) -> Result<(), FolderError> {
+    let stem = &sample.stem;
+    let invalid = |reason: String| FolderError::InvalidSample {
+        stem: stem.clone(),
+        reason,
+    };
+    let bad_char = stem
+        .chars()
+        .find(|c| matches!(c, '/' | '\\' | ',' | '"') || c.is_control());
+    if stem.is_empty() || stem.starts_with('.') || stem.trim() != stem || bad_char.is_some() {
+        return Err(invalid(
+            "a name must be non-empty, not start with '.' or a space, and hold no '/', '\\', \
+             ',', '\"' or control character"
+                .into(),
+        ));
+    }
+    let image = &sample.image;
+    let pixels = image.width * image.height;
+    if sample.photo.len() != pixels {
+        return Err(invalid(format!(
+            "photo has {} pixels, the image is {}x{}",
+            sample.photo.len(),
+            image.width,
+            image.height
+        )));
+    }
+    if pixels == 0 {
+        return Err(invalid("the image is empty".into()));
+    }
+    if let Some(i) = sample
+        .photo
+        .iter()
+        .position(|c| c.iter().any(|v| !v.is_finite()))
+    {
+        return Err(invalid(format!(
+            "photo has a non-finite value at pixel ({}, {})",
+            i % image.width,
+            i / image.width
+        )));
+    }
+    image.validate().map_err(|e| invalid(e.to_string()))?;
+    let (yaw, pitch) = image.pose;
+    if !yaw.is_finite() || !pitch.is_finite() || pitch.abs() >= std::f64::consts::FRAC_PI_2 {
+        return Err(invalid(format!(
+            "pose ({yaw}, {pitch}) must be finite with pitch strictly between -pi/2 and pi/2"
+        )));
+    }
+    Ok(())
+}
