@@ -105,12 +105,12 @@ pub fn analyse(map: &EnvMap, lmax: usize, quad_tol: f64) -> ShCoeffs {
         .collect();
 
     // Fixed blocks of rows, summed in order, so the result does not depend on thread timing;
-    // at most `ANALYSIS_BLOCKS_IN_FLIGHT` partial sums exist at once (each holds every
-    // coefficient), so memory does not grow with the number of blocks.
+    // at most `analysis_blocks_in_flight` partial sums exist at once (each holds every
+    // coefficient), so memory at fine tolerances does not grow with the number of blocks.
     let blocks = h.min(64);
     let mut coeffs = vec![[Complex64::default(); 3]; n];
     let block_ids: Vec<usize> = (0..blocks).collect();
-    for group in block_ids.chunks(analysis_blocks_in_flight()) {
+    for group in block_ids.chunks(analysis_blocks_in_flight(lmax)) {
         let partials: Vec<Option<Vec<[Complex64; 3]>>> = group
             .par_iter()
             .map(|&b| {
@@ -180,16 +180,28 @@ pub fn analyse(map: &EnvMap, lmax: usize, quad_tol: f64) -> ShCoeffs {
     ShCoeffs { table, coeffs }
 }
 
-/// Partial sums of [`analyse`] held at once: one per thread.
-pub fn analysis_blocks_in_flight() -> usize {
-    rayon::current_num_threads().max(1)
+/// Bytes of one partial sum of [`analyse`] at degree `lmax`: three complex numbers per
+/// coefficient.
+fn partial_bytes(lmax: usize) -> u64 {
+    ((lmax + 1) * (lmax + 2) / 2) as u64 * std::mem::size_of::<[Complex64; 3]>() as u64
 }
 
-/// Bytes [`analyse`] holds at its peak for degree `lmax`: the result and one partial sum per
-/// block in flight, each three complex numbers per coefficient.
+/// Memory the partial sums in flight may take before [`analyse`] holds fewer of them (never
+/// fewer than one per thread).
+const PARTIALS_BUDGET: u64 = 256 << 20;
+
+/// Row blocks [`analyse`] sums at once at degree `lmax`: all 64 while their partial sums fit in
+/// [`PARTIALS_BUDGET`] (every band limit the default tolerance plans), else one per thread, so
+/// memory stays bounded at fine tolerances without costing parallelism at ordinary ones.
+pub fn analysis_blocks_in_flight(lmax: usize) -> usize {
+    let threads = rayon::current_num_threads().max(1);
+    ((PARTIALS_BUDGET / partial_bytes(lmax)) as usize).clamp(threads.min(64), 64)
+}
+
+/// Bytes [`analyse`] holds at its peak for degree `lmax`: the result and the partial sums in
+/// flight.
 pub fn analysis_bytes(lmax: usize) -> u64 {
-    let n = ((lmax + 1) * (lmax + 2) / 2) as u64;
-    (analysis_blocks_in_flight() as u64 + 1) * n * std::mem::size_of::<[Complex64; 3]>() as u64
+    (analysis_blocks_in_flight(lmax) as u64 + 1) * partial_bytes(lmax)
 }
 
 /// Evaluates `f = sum_lm kernel_l a_lm Y_lm` (degrees `l < kernel.len()`) at the texel centres
