@@ -549,12 +549,21 @@ fn write_plots(
 /// when the log carries the run clock); returns the files written.
 pub fn plot_run(run: &Path, out: &Path, title: &str) -> Result<Vec<PathBuf>, PlotError> {
     let metrics = RunMetrics::read(&run.join(volux_train::run_folder::METRICS))?;
+    plot_metrics(&metrics, out, title)
+}
+
+/// [`plot_run`] for a log already read.
+pub fn plot_metrics(
+    metrics: &RunMetrics,
+    out: &Path,
+    title: &str,
+) -> Result<Vec<PathBuf>, PlotError> {
     let mut axes = vec![XAxis::Kimg];
     if metrics.has_minutes() {
         axes.push(XAxis::Minutes);
     }
     write_plots(out, "curves", &axes, |axis| {
-        render(title, &panels(&metrics, axis), axis)
+        render(title, &panels(metrics, axis), axis)
     })
 }
 

@@ -22,7 +22,7 @@ use base64::Engine;
 use volux_train::checkpoint::{self, TrainState};
 use volux_train::run_folder::{GRIDS, METRICS};
 
-use crate::plot::{PlotError, RunMetrics, plot_run};
+use crate::plot::{PlotError, RunMetrics, plot_metrics};
 
 /// Most sample grids shown.
 pub const MAX_GRIDS: usize = 8;
@@ -203,7 +203,7 @@ pub fn run_page(run: &Path, title: &str) -> Result<String, RunPageError> {
     if metrics_path.is_file() {
         let metrics = RunMetrics::read(&metrics_path)?;
         section(&mut html, "Curves");
-        for png in plot_run(run, &run.join("plots"), title)? {
+        for png in plot_metrics(&metrics, &run.join("plots"), title)? {
             let caption = match png.file_stem().and_then(|s| s.to_str()) {
                 Some("curves-minutes") => "losses and scores against wall-clock minutes",
                 _ => "losses and scores against thousands of images",

@@ -299,16 +299,17 @@ pub fn generator_mesh(
     if mesh.triangles.is_empty() {
         return Err(MeshError::NoSurface { level, min, max });
     }
-    for points in mesh.positions.clone().chunks(CHUNK) {
+    let (mut normals, mut colors) = (Vec::new(), Vec::new());
+    for points in mesh.positions.chunks(CHUNK) {
         let out = query(points, FieldWants::ALL);
-        let normals = to_f32_vec(out.normals.expect("asked for normals"));
+        let n = to_f32_vec(out.normals.expect("asked for normals"));
         let albedo = to_f32_vec(out.albedo.expect("asked for albedo"));
-        mesh.normals
-            .extend(normals.chunks_exact(3).map(|n| [n[0], n[1], n[2]]));
-        mesh.colors.extend(albedo.chunks_exact(3).map(|a| {
+        normals.extend(n.chunks_exact(3).map(|n| [n[0], n[1], n[2]]));
+        colors.extend(albedo.chunks_exact(3).map(|a| {
             [0, 1, 2].map(|c| (linear_to_srgb(a[c]).clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
         }));
     }
+    (mesh.normals, mesh.colors) = (normals, colors);
     Ok(GeneratorMesh {
         mesh,
         level,

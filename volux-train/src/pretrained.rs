@@ -55,23 +55,18 @@ pub struct TrainedGenerator {
     pub device: Device,
 }
 
-impl ShippedModel {
-    /// Parses the embedded state and loads the embedded EMA generator.
-    pub fn load(&self, backend: BackendKind) -> Result<TrainedGenerator, TrainError> {
-        let origin = PathBuf::from(self.folder);
-        let state_path = origin.join(checkpoint::STATE);
-        let state: TrainState = toml::from_str(self.state).map_err(|e| CheckpointError::File {
-            path: state_path.clone(),
-            message: e.to_string(),
-        })?;
+impl TrainedGenerator {
+    /// Builds the generator `state`'s config describes on `backend` and fills it with `load`
+    /// (the EMA weights from a file or from embedded bytes).
+    fn build(
+        state: TrainState,
+        origin: PathBuf,
+        backend: BackendKind,
+        load: impl FnOnce(Generator) -> Result<Generator, CheckpointError>,
+    ) -> Result<Self, TrainError> {
         let config = TrainConfig::from_text(state.config.clone(), &state.config_path)?;
         let device = backend.device()?;
-        let g = config.generator().init(&device)?;
-        let g = checkpoint::load_ema_bytes(
-            &origin.join(checkpoint::GENERATOR_EMA),
-            self.generator_ema,
-            g,
-        )?;
+        let g = load(config.generator().init(&device)?)?;
         Ok(TrainedGenerator {
             g,
             config,
@@ -82,39 +77,44 @@ impl ShippedModel {
     }
 }
 
+impl ShippedModel {
+    /// Parses the embedded state and loads the embedded EMA generator.
+    pub fn load(&self, backend: BackendKind) -> Result<TrainedGenerator, TrainError> {
+        let origin = PathBuf::from(self.folder);
+        let state: TrainState = toml::from_str(self.state).map_err(|e| CheckpointError::File {
+            path: origin.join(checkpoint::STATE),
+            message: e.to_string(),
+        })?;
+        let weights = origin.join(checkpoint::GENERATOR_EMA);
+        TrainedGenerator::build(state, origin, backend, |g| {
+            checkpoint::load_ema_bytes(&weights, self.generator_ema, g)
+        })
+    }
+}
+
 /// The EMA generator at `checkpoint`: a checkpoint folder, a run folder (its newest
 /// checkpoint), or the name of a shipped model ([`SHIPPED`]) when no such folder exists.
 pub fn load_for_sampling(
     checkpoint: &Path,
     backend: BackendKind,
 ) -> Result<TrainedGenerator, TrainError> {
-    if !checkpoint.exists()
-        && let Some(model) = checkpoint.to_str().and_then(shipped)
-    {
-        return model.load(backend);
-    }
     if !checkpoint.exists() {
-        return Err(TrainError::NoCheckpoint {
-            path: checkpoint.to_path_buf(),
-            shipped: SHIPPED
-                .iter()
-                .map(|m| m.name)
-                .collect::<Vec<_>>()
-                .join(", "),
-        });
+        return match checkpoint.to_str().and_then(shipped) {
+            Some(model) => model.load(backend),
+            None => Err(TrainError::NoCheckpoint {
+                path: checkpoint.to_path_buf(),
+                shipped: SHIPPED
+                    .iter()
+                    .map(|m| m.name)
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            }),
+        };
     }
     let dir = checkpoint::resolve(checkpoint)?;
     let state = checkpoint::read_state(&dir)?;
-    let config = TrainConfig::from_text(state.config.clone(), &state.config_path)?;
-    let device = backend.device()?;
-    let g = config.generator().init(&device)?;
-    let g = checkpoint::load_ema(&dir, g)?;
-    Ok(TrainedGenerator {
-        g,
-        config,
-        state,
-        origin: dir,
-        device,
+    TrainedGenerator::build(state, dir.clone(), backend, |g| {
+        checkpoint::load_ema(&dir, g)
     })
 }
 

@@ -74,9 +74,9 @@ fn strip_start_code(nal: &[u8]) -> &[u8] {
     }
 }
 
-/// `frames` (row-major sRGB pixels of `width x height`) pad to even sides, as YUV 4:2:0 needs,
-/// by repeating the last row and column.
-fn padded(frame: &[[u8; 3]], width: usize, height: usize) -> (Vec<u8>, usize, usize) {
+/// A frame (row-major sRGB pixels of `width x height`) as RGB bytes padded to even sides, as
+/// YUV 4:2:0 needs, by repeating the last row and column.
+fn padded(frame: &[[u8; 3]], width: usize, height: usize) -> Vec<u8> {
     let (w, h) = (width + width % 2, height + height % 2);
     let mut rgb = Vec::with_capacity(w * h * 3);
     for y in 0..h {
@@ -84,7 +84,7 @@ fn padded(frame: &[[u8; 3]], width: usize, height: usize) -> (Vec<u8>, usize, us
             rgb.extend_from_slice(&frame[y.min(height - 1) * width + x.min(width - 1)]);
         }
     }
-    (rgb, w, h)
+    rgb
 }
 
 /// Encodes `frames` at `fps` frames per second into an MP4 file at `path`, atomically.
@@ -143,11 +143,10 @@ pub fn save_mp4(
         .map_err(|e| encode_error(0, e))?;
     let (mut sps, mut pps) = (None, None);
     let mut samples = Vec::with_capacity(frames.len());
-    let (mut w, mut h) = (width, height);
+    let (w, h) = (width + width % 2, height + height % 2);
     for (i, frame) in frames.iter().enumerate() {
-        let (rgb, pw, ph) = padded(frame, width, height);
-        (w, h) = (pw, ph);
-        let yuv = YUVBuffer::from_rgb8_source(RgbSliceU8::new(&rgb, (pw, ph)));
+        let rgb = padded(frame, width, height);
+        let yuv = YUVBuffer::from_rgb8_source(RgbSliceU8::new(&rgb, (w, h)));
         let stream = encoder.encode(&yuv).map_err(|e| encode_error(i, e))?;
         // MP4 stores NAL units with 4-byte lengths, and the parameter sets in the track header.
         let mut sample = Vec::new();
