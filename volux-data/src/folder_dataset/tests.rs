@@ -643,6 +643,14 @@ fn write_dataset_checks_before_writing() {
         msg.starts_with("sample `c`: pose (-0.7, -2) must be finite"),
         "{msg}"
     );
+    // A dataset is never written that reading would refuse: the yaw has the same bound.
+    let mut bad = samples.clone();
+    bad[0].image.pose.0 = 7.0;
+    let msg = write_dataset(&root, &bad).unwrap_err().to_string();
+    assert!(
+        msg.starts_with("sample `a`: pose (7, 0) must be finite with yaw within"),
+        "{msg}"
+    );
     assert!(!root.exists(), "nothing was written");
     write_dataset(&root, &samples).unwrap();
     let e = write_dataset(&root, &samples).unwrap_err();

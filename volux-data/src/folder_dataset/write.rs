@@ -8,7 +8,7 @@ use std::path::Path;
 use volux_envmap::EnvMapError;
 use volux_envmap::io;
 
-use super::{ALBEDO, FolderError, FolderSample, MASKS, NORMALS, PHOTOS, POSES_FILE};
+use super::{ALBEDO, FolderError, FolderSample, MASKS, MAX_YAW, NORMALS, PHOTOS, POSES_FILE};
 
 /// Writes `samples` as a folder dataset at `root`, which must be new or empty: photos and
 /// masks as 8-bit PNG, albedo and normals as f32 OpenEXR (lossless), and `poses.csv` with
@@ -126,9 +126,13 @@ fn check_sample(sample: &FolderSample) -> Result<(), FolderError> {
     }
     image.validate().map_err(|e| invalid(e.to_string()))?;
     let (yaw, pitch) = image.pose;
-    if !yaw.is_finite() || !pitch.is_finite() || pitch.abs() >= std::f64::consts::FRAC_PI_2 {
+    if !yaw.is_finite()
+        || yaw.abs() > MAX_YAW
+        || !pitch.is_finite()
+        || pitch.abs() >= std::f64::consts::FRAC_PI_2
+    {
         return Err(invalid(format!(
-            "pose ({yaw}, {pitch}) must be finite with pitch strictly between -pi/2 and pi/2"
+            "pose ({yaw}, {pitch}) must be finite with yaw within [-2 pi, 2 pi] and pitch strictly between -pi/2 and pi/2 (what reading poses.csv accepts)"
         )));
     }
     Ok(())
