@@ -7,11 +7,12 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use clap::{Args, Subcommand};
 use volux_data::contact_sheet::{self, ContactSheet};
-use volux_data::dataset::{self, DataConfig, Dataset};
+use volux_data::dataset::{DataConfig, Dataset};
 use volux_data::example_cache::{self, CacheSpec};
+use volux_data::examples;
 use volux_data::pose_distribution::PoseDistribution;
 use volux_data::synthetic_head::{self, RenderSettings, SyntheticHead};
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 use volux_envmap::{LightMap, PreconvolveOptions, io, preconvolve};
 
 #[derive(Debug, Subcommand)]
@@ -82,7 +83,7 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
         start.elapsed().as_secs_f64()
     );
     let dataset = Dataset::new(&config, bank.shared())?;
-    let fingerprint = dataset::fingerprint(&hashed, &bank);
+    let fingerprint = examples::fingerprint(&hashed, &bank);
     let spec = CacheSpec {
         examples: cache.examples,
         shard_size: cache.shard_size,

@@ -12,9 +12,9 @@ use volux_envmap::{PreconvolveOptions, preconvolve};
 use volux_model::backend::BackendKind;
 use volux_model::generator::{GeneratorConfig, GeneratorWants};
 use volux_model::light_lookup::LightMapBatch;
+use volux_model::light_lookup::Lighting;
 use volux_model::presets::{self, DiscriminatorRole};
 use volux_model::sampling_report::{self, DEFAULT_LAYOUTS, ProposalLayout, SamplingSettings};
-use volux_model::volume_rendering::Lighting;
 
 #[derive(Debug, Subcommand)]
 pub enum ModelCommand {

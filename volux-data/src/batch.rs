@@ -11,9 +11,8 @@ use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
 use std::thread::JoinHandle;
 
 use burn::tensor::{Device, Tensor, TensorData};
-use volux_envmap::{LightMap, LightMapSet};
-use volux_model::light_lookup::LightMapBatch;
-use volux_model::volume_rendering::Lighting;
+use volux_envmap::LightMapSet;
+use volux_model::light_lookup::{Lighting, LightingTensorError, lighting_tensors};
 
 use crate::training_sample::{LightingDraw, TrainingSample};
 
@@ -39,19 +38,6 @@ pub struct Batch {
     /// The (environment, rotation) each example was lit with; the generator's samples of this
     /// step are lit with the same draws.
     pub draws: Vec<LightingDraw>,
-}
-
-/// Why a batch's lighting cannot be put on a device.
-#[derive(Debug, thiserror::Error)]
-pub enum LightingTensorError {
-    #[error("draw names environment {0} of a bank of {1}")]
-    Index(usize, usize),
-    #[error("an environment lacks the light map of exponent {0}")]
-    Exponent(u32),
-    #[error(transparent)]
-    Maps(#[from] volux_model::light_lookup::LightLookupError),
-    #[error(transparent)]
-    Lighting(#[from] volux_model::volume_rendering::LightingError),
 }
 
 /// A batch on a device.
@@ -157,30 +143,6 @@ impl Batch {
             specular: t(&self.specular, 3, hi),
         }
     }
-}
-
-/// The generator's `Lighting` for one light-map set and environment yaw per batch element.
-pub fn lighting_tensors(
-    sets: &[&LightMapSet],
-    yaws: &[f64],
-    device: &Device,
-) -> Result<Lighting, LightingTensorError> {
-    assert_eq!(sets.len(), yaws.len(), "one yaw per light-map set");
-    let exponents = sets
-        .first()
-        .ok_or(LightingTensorError::Index(0, 0))?
-        .exponents();
-    let mut maps = Vec::with_capacity(exponents.len());
-    for n in exponents {
-        let per_example: Vec<&LightMap> = sets
-            .iter()
-            .map(|s| s.get(n).ok_or(LightingTensorError::Exponent(n)))
-            .collect::<Result<_, _>>()?;
-        maps.push(LightMapBatch::new(&per_example, device)?);
-    }
-    let yaw: Vec<f32> = yaws.iter().map(|&y| y as f32).collect();
-    let yaw = Tensor::<1>::from_data(TensorData::new(yaw, [yaws.len()]), device);
-    Ok(Lighting::new(maps, Some(yaw))?)
 }
 
 /// Makes batches `start, start + 1, ...` on a background thread, `prefetch` ahead of the
@@ -327,13 +289,13 @@ mod tests {
         assert_eq!(t.photo.dims(), [2, 3, 4, 4]);
         assert_eq!(t.albedo_lo.dims(), [2, 3, 2, 2]);
         assert_eq!(t.mask.dims(), [2, 1, 4, 4]);
-        let photo: Vec<f32> = t.photo.into_data().try_to_vec::<f32>().unwrap();
+        let photo = volux_model::backend::to_f32_vec(t.photo);
         // Example 0, red plane: 0.25 -> -0.5; green plane 0 -> -1; blue 1 -> 1.
         assert_eq!(&photo[..16], &[-0.5; 16]);
         assert_eq!(&photo[16..32], &[-1.0; 16]);
         assert_eq!(&photo[32..48], &[1.0; 16]);
         assert_eq!(photo[48], 1.0);
-        let albedo: Vec<f32> = t.albedo_hi.into_data().try_to_vec::<f32>().unwrap();
+        let albedo = volux_model::backend::to_f32_vec(t.albedo_hi);
         // Red plane of example 1 holds the pixel index, row-major.
         assert_eq!(&albedo[48..52], &[0.0, 1.0, 2.0, 3.0]);
         assert_eq!(

@@ -11,13 +11,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use rayon::prelude::*;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use volux_envmap::io::{linear_to_srgb, srgb_to_linear};
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::{self, SplitMix64};
 use volux_envmap::{LightMap, LightMapSet, PreconvolveOptions, Rgb};
 
-use crate::batch::{Batch, BatchLoader};
-use crate::example_cache::{self, ExampleCache};
+use crate::batch::Batch;
 use crate::folder_dataset::{FolderDataset, FolderError};
 use crate::hdri_collection::{HdriCollection, HdriCollectionConfig, HdriError};
 use crate::light_map_bank::LightMapBank;
@@ -27,7 +26,7 @@ use crate::synthetic_head::{self, RenderSettings, SyntheticHead};
 use crate::training_sample::{Intrinsics, LightingDraw, SampleError, TrainingSample, make_sample};
 
 /// Where the intrinsic images come from (`[data.source]` in a config, `kind = ...`).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
 pub enum SourceConfig {
     /// The built-in procedural heads.
@@ -74,7 +73,7 @@ impl Default for SourceConfig {
 }
 
 /// Where `volux data build` puts rendered examples (`[data.cache]`).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct CacheConfig {
     /// Folder of the shards and manifest.
@@ -98,7 +97,7 @@ fn default_volume_resolution() -> usize {
 }
 
 /// The data half of a training config (the `[data]` table).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct DataConfig {
     /// Seed of every draw (heads, poses, environments, rotations).
@@ -252,8 +251,6 @@ pub enum DataError {
     File { path: PathBuf, message: String },
     #[error("lighting")]
     Lighting(#[source] LightingError),
-    #[error(transparent)]
-    Cache(Box<crate::example_cache::CacheError>),
     #[error(transparent)]
     Folder(#[from] FolderError),
     #[error("{stem}")]
@@ -459,8 +456,7 @@ impl Dataset {
 
 /// A seed for example `index` of a stream seeded `seed`.
 fn mix(seed: u64, index: u64) -> u64 {
-    let mut rng = SplitMix64::new(seed ^ index.wrapping_mul(0xD1B5_4A32_D192_ED03));
-    rng.next_u64()
+    random::stream_seed(seed, index, random::EXAMPLE_STREAM)
 }
 
 /// Brings a folder image to `side x side` by area averaging (its side must be a multiple):
@@ -512,59 +508,6 @@ fn fit(
         },
         photo,
     ))
-}
-
-/// The fingerprint of a dataset's examples: the `[data]` table as [`DataConfig::load`]
-/// returns it and the content keys of the environments (see [`example_cache::fingerprint`]).
-pub fn fingerprint(hashed_config: &str, bank: &LightMapBank) -> String {
-    let keys: Vec<String> = (0..bank.len()).map(|i| bank.key(i).to_hex()).collect();
-    example_cache::fingerprint(&[hashed_config.as_bytes(), keys.join(",").as_bytes()])
-}
-
-/// Where training takes its examples from: made on the fly, or read from a finished cache.
-#[derive(Clone)]
-pub enum Examples {
-    Live(Arc<Dataset>),
-    Cached(Arc<ExampleCache>),
-}
-
-impl Examples {
-    /// The config's example cache if it has one (it must be finished and built from this very
-    /// config and environments), else examples made on the fly.
-    pub fn open(
-        config: &DataConfig,
-        hashed_config: &str,
-        bank: &LightMapBank,
-    ) -> Result<Examples, DataError> {
-        let Some(cache) = &config.cache else {
-            let dataset = Dataset::new(config, bank.shared())?;
-            return Ok(Examples::Live(Arc::new(dataset)));
-        };
-        let opened = ExampleCache::open(&cache.dir).map_err(|e| DataError::Cache(Box::new(e)))?;
-        if opened.manifest().fingerprint != fingerprint(hashed_config, bank) {
-            return Err(DataError::Config(format!(
-                "the example cache in {} was built from another [data] config or other environments: run `volux data build` again",
-                cache.dir.display()
-            )));
-        }
-        Ok(Examples::Cached(Arc::new(opened)))
-    }
-
-    /// Batch `index` of `size` examples.
-    pub fn batch(&self, index: u64, size: usize) -> Result<Batch, DataError> {
-        match self {
-            Examples::Live(d) => d.batch(index, size),
-            Examples::Cached(c) => c
-                .batch(index, size)
-                .map_err(|e| DataError::Cache(Box::new(e))),
-        }
-    }
-
-    /// Batches `start, start + 1, ...` of `size` made on another thread, `prefetch` ahead.
-    pub fn loader(&self, start: u64, size: usize, prefetch: usize) -> BatchLoader<DataError> {
-        let examples = self.clone();
-        BatchLoader::spawn(start, prefetch, move |i| examples.batch(i, size))
-    }
 }
 
 #[cfg(test)]
@@ -806,71 +749,6 @@ mod tests {
                 .iter()
                 .all(|p| (0..3).all(|k| (p[k] - [0.2, 0.6, 0.4][k]).abs() < 3e-3))
         );
-    }
-
-    #[test]
-    fn examples_come_from_a_matching_cache_or_are_made_live() {
-        use crate::hdri_collection::HdriCollectionConfig;
-        let dir = tempfile::tempdir().unwrap();
-        let file = dir.path().join("d.toml");
-        let write = |seed: u64| {
-            std::fs::write(&file, format!("[data]\nseed = {seed}\nresolution = 8\nvolume_resolution = 4\n[data.lighting]\nbuiltin = false\nskies = 1\novercast = 0\nstudios = 0\nprocedural_height = 16\n[data.cache]\ndir = \"ex\"\nexamples = 3\nshard_size = 2\n")).unwrap();
-            DataConfig::load(&file).unwrap()
-        };
-        let (config, hashed) = write(1);
-        assert_eq!(
-            config.lighting,
-            HdriCollectionConfig {
-                builtin: false,
-                skies: 1,
-                overcast: 0,
-                studios: 0,
-                procedural_height: 16,
-                ..Default::default()
-            }
-        );
-        let bank = config.light_bank().unwrap();
-        // No cache yet: an error saying how to make it.
-        assert!(Examples::open(&config, &hashed, &bank).is_err());
-        let live = Dataset::new(&config, Arc::new(bank.sets().to_vec())).unwrap();
-        let spec = example_cache::CacheSpec {
-            examples: 3,
-            shard_size: 2,
-        };
-        let cache_dir = &config.cache.as_ref().unwrap().dir;
-        example_cache::build(
-            cache_dir,
-            &live,
-            &fingerprint(&hashed, &bank),
-            spec,
-            &|_, _| {},
-        )
-        .unwrap();
-        let examples = Examples::open(&config, &hashed, &bank).unwrap();
-        assert!(matches!(examples, Examples::Cached(_)));
-        let mut loader = examples.loader(1, 2, 2);
-        let cached = loader.next_batch().unwrap().unwrap();
-        let made = live.batch(1, 2);
-        // Batch 1 of 2 wraps around the 3 cached examples: examples 2 and 0.
-        let wrapped = Batch::collate(1, &[live.example(2).unwrap(), live.example(0).unwrap()]);
-        assert_eq!(cached.photo, wrapped.photo);
-        assert!(made.is_ok());
-        // Another seed: the cache no longer matches.
-        let (other, other_hashed) = write(2);
-        let err = Examples::open(&other, &other_hashed, &bank)
-            .err()
-            .unwrap()
-            .to_string();
-        assert!(err.contains("volux data build"), "{err}");
-        // Without a cache table examples are made on the fly.
-        let no_cache = DataConfig {
-            cache: None,
-            ..other
-        };
-        assert!(matches!(
-            Examples::open(&no_cache, &other_hashed, &bank).unwrap(),
-            Examples::Live(_)
-        ));
     }
 
     #[test]

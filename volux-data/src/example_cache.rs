@@ -19,10 +19,12 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
+use sha2::{Digest as _, Sha256};
+use volux_envmap::durable::{self, FileError};
 
 use crate::batch::Batch;
 use crate::dataset::{DataError, Dataset};
+use crate::digest::{Digest, hex};
 use crate::training_sample::{LightingDraw, TrainingSample};
 
 /// Bump when the examples a dataset makes change (rendering, relighting, layer conventions), so
@@ -82,8 +84,12 @@ pub enum CacheError {
     },
     #[error("{path}: {message}")]
     Corrupt { path: PathBuf, message: String },
-    #[error("{path}: cannot write: {message}")]
-    Write { path: PathBuf, message: String },
+    #[error("{path}: cannot write")]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: FileError,
+    },
     #[error("cache spec: {0}")]
     Spec(String),
     #[error("example {index} is outside the cache's {len} examples")]
@@ -109,10 +115,6 @@ pub fn fingerprint(parts: &[&[u8]]) -> String {
         hash.update(part);
     }
     hex(&hash.finalize())
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 fn shard_name(index: u64) -> String {
@@ -200,17 +202,14 @@ fn read_manifest(dir: &Path) -> Result<Option<Manifest>, CacheError> {
     }
 }
 
-/// Writes `bytes` to `path` through a temporary file and a rename (`io::write_atomically`).
+/// Writes `bytes` to `path` through a temporary file and a rename (`durable::write_atomically`).
 fn write_atomically(path: &Path, bytes: &[u8]) -> Result<(), CacheError> {
-    volux_envmap::io::write_atomically(path, |tmp| {
-        fs::write(tmp, bytes).map_err(|source| volux_envmap::EnvMapError::Io {
-            path: tmp.to_path_buf(),
-            source,
-        })
+    durable::write_atomically(path, |tmp| {
+        fs::write(tmp, bytes).map_err(FileError::at(tmp))
     })
-    .map_err(|e| CacheError::Write {
+    .map_err(|source| CacheError::Write {
         path: path.to_path_buf(),
-        message: e.to_string(),
+        source,
     })
 }
 
@@ -221,7 +220,7 @@ fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), CacheError> {
 
 fn file_sha256(path: &Path) -> Result<String, CacheError> {
     let bytes = fs::read(path).map_err(io_error(path))?;
-    Ok(hex(&Sha256::digest(&bytes)))
+    Ok(Digest::of(&bytes).to_hex())
 }
 
 /// Builds (or completes) the cache of `spec.examples` examples of `dataset` in `dir`;
@@ -301,7 +300,7 @@ pub fn build(
             index: s,
             file,
             examples: n,
-            sha256: hex(&Sha256::digest(&bytes)),
+            sha256: Digest::of(&bytes).to_hex(),
         });
         manifest.shards.sort_by_key(|e| e.index);
         write_manifest(dir, &manifest)?;

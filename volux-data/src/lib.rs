@@ -18,8 +18,10 @@
 //! - [`training_sample`]: one example with every layer the discriminators see, in the
 //!   generator's conventions; [`dataset`]: examples and batches as a pure function of their
 //!   index; [`example_cache`]: examples rendered once into a sharded on-disk cache;
+//!   [`examples`]: what training reads, live or from a cache that matches its config;
 //!   [`batch`]: batches as Burn tensors and a prefetching loader;
-//! - [`pose_distribution`], [`contact_sheet`]: camera poses, preview grids.
+//! - [`pose_distribution`], [`contact_sheet`]: camera poses, preview grids; [`digest`]:
+//!   SHA-256 keys and their hex form.
 //!
 //! The dataset camera is the model's (`volux_model::ray_sampling`), so that pseudo ground
 //! truth and generated images share one set of conventions.
@@ -27,7 +29,9 @@
 pub mod batch;
 pub mod contact_sheet;
 pub mod dataset;
+pub mod digest;
 pub mod example_cache;
+pub mod examples;
 pub mod folder_dataset;
 pub mod hdri_collection;
 pub mod light_map_bank;

@@ -29,9 +29,10 @@
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use sha2::{Digest, Sha256};
-use volux_envmap::{EnvMapError, LightMap, LightMapSet, PreconvolveOptions, io};
+use sha2::{Digest as _, Sha256};
+use volux_envmap::{EnvMapError, LightMap, LightMapSet, PreconvolveOptions, durable};
 
+use crate::digest::Digest;
 use crate::hdri_collection::ContentKey;
 
 /// Version of the file format and of the key text. Bump it whenever either changes, or when
@@ -51,16 +52,8 @@ const HEADER_BYTES: usize = 8 + 4 + 32 + 4;
 const MAP_HEADER_BYTES: usize = 4 + 4 + 4 + 8 + 8;
 const CHECKSUM_BYTES: usize = 32;
 
-/// The key of one cached light-map set.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct CacheKey(pub [u8; 32]);
-
-impl CacheKey {
-    /// Lower-case hexadecimal, 64 characters.
-    pub fn to_hex(&self) -> String {
-        self.0.iter().map(|b| format!("{b:02x}")).collect()
-    }
-}
+/// The key of one cached light-map set: the digest of [`cache_key`]'s text.
+pub type CacheKey = Digest;
 
 /// The cache key of the light maps of the environment with `content` under `options`.
 pub fn cache_key(content: ContentKey, options: &PreconvolveOptions) -> CacheKey {
@@ -73,7 +66,7 @@ pub fn cache_key(content: ContentKey, options: &PreconvolveOptions) -> CacheKey 
         options.taper,
         options.max_height,
     );
-    CacheKey(Sha256::digest(text.as_bytes()).into())
+    Digest::of(text.as_bytes())
 }
 
 /// Why a cache file was not used.
@@ -187,7 +180,7 @@ pub fn decode(
     let found_key = r.take::<32>();
     if found_key != key.0 {
         return Err(CacheFileError::Key {
-            found: CacheKey(found_key).to_hex(),
+            found: Digest(found_key).to_hex(),
             expected: key.to_hex(),
         });
     }
@@ -327,7 +320,7 @@ impl LightMapCache {
     pub fn store(&self, key: CacheKey, set: &LightMapSet) -> Result<PathBuf, CacheError> {
         let path = self.path(key);
         let bytes = encode(key, set);
-        io::write_atomically(&path, |tmp| {
+        durable::write_atomically(&path, |tmp| {
             fs::write(tmp, &bytes).map_err(|source| EnvMapError::Io {
                 path: path.clone(),
                 source,

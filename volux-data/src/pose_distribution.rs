@@ -2,7 +2,7 @@
 //! Gaussians on yaw and pitch, pi-GAN's CelebA values by default, truncated at three standard
 //! deviations so that no draw looks at the back of the head.
 
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 /// Gaussian yaw and pitch, radians.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Deserialize, serde::Serialize)]

@@ -245,8 +245,8 @@ pub fn relight_weighted(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use volux_envmap::random::SplitMix64;
     use volux_envmap::reference::Reference;
-    use volux_envmap::report::SplitMix64;
     use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
 
     /// A sphere of radius 0.3 seen at `pose`: camera-space normals and mask by ray casting.

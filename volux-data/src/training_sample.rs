@@ -13,7 +13,7 @@
 //! over `factor x factor` blocks).
 
 use volux_envmap::io::srgb_to_linear;
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 use volux_envmap::{LightMap, Rgb};
 
 use crate::relighting::{IntrinsicImage, RelightError, SpecularWeights, relight_weighted};

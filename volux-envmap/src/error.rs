@@ -139,6 +139,15 @@ pub fn chain(error: &dyn std::error::Error) -> String {
     text
 }
 
+impl From<crate::durable::FileError> for EnvMapError {
+    fn from(e: crate::durable::FileError) -> Self {
+        EnvMapError::Io {
+            path: e.path,
+            source: e.source,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

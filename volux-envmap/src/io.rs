@@ -10,8 +10,9 @@
 
 use std::fs;
 use std::io::{BufWriter, Write};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
+use crate::durable::write_atomically;
 use crate::envmap::{EnvMap, Rgb, luminance};
 use crate::error::EnvMapError;
 
@@ -276,66 +277,6 @@ pub fn linear_to_srgb(v: f32) -> f32 {
     } else {
         1.055 * v.powf(1.0 / 2.4) - 0.055
     }
-}
-
-/// Flushes a file's contents to the disk (`fsync`).
-pub fn sync_file(path: &Path) -> std::io::Result<()> {
-    fs::File::open(path)?.sync_all()
-}
-
-/// Flushes a folder's entries (names created, renamed or removed in it) to the disk, so that a
-/// rename survives a power cut. On systems where a folder cannot be opened as a file (Windows)
-/// there is nothing to do.
-pub fn sync_dir(path: &Path) -> std::io::Result<()> {
-    #[cfg(unix)]
-    {
-        fs::File::open(path)?.sync_all()
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = path;
-        Ok(())
-    }
-}
-
-/// The folder a path's entry lives in (`.` for a bare file name).
-fn parent_folder(path: &Path) -> &Path {
-    match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p,
-        _ => Path::new("."),
-    }
-}
-
-/// Runs `write` on a temporary file next to `path`, flushes it to the disk, renames it to
-/// `path` and flushes the folder, so that after a crash or a power cut `path` holds either its
-/// old contents or the whole new file. On any error the temporary file is removed and `path`
-/// is untouched.
-pub fn write_atomically(
-    path: &Path,
-    write: impl FnOnce(&Path) -> Result<(), EnvMapError>,
-) -> Result<(), EnvMapError> {
-    let file_name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    // Unique per process and call, so that threads writing the same target do not share a
-    // temporary file. Keep the extension last: encoders pick the format from it.
-    static CALLS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let tmp: PathBuf =
-        path.with_file_name(format!(".tmp.{}.{call}.{file_name}", std::process::id()));
-    let io = |p: &Path| {
-        let p = p.to_path_buf();
-        move |source| EnvMapError::Io { path: p, source }
-    };
-    let result = write(&tmp)
-        .and_then(|()| sync_file(&tmp).map_err(io(&tmp)))
-        .and_then(|()| fs::rename(&tmp, path).map_err(io(path)))
-        .and_then(|()| sync_dir(parent_folder(path)).map_err(io(parent_folder(path))));
-    if result.is_err() {
-        let _ = fs::remove_file(&tmp);
-    }
-    result
 }
 
 /// Writes linear RGB texels as a 32-bit float OpenEXR file (ZIP, lossless), atomically.

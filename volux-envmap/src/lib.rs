@@ -3,11 +3,13 @@
 //!
 //! - [`EnvMap`]: an equirectangular f32 linear-RGB map, read from OpenEXR, Radiance `.hdr` or
 //!   8-bit PNG/JPEG ([`io`]), rotated about the vertical axis, summarised by [`EnvMap::stats`].
+//! - [`durable`]: atomic, fsynced writes that every crate's files go through.
 //! - [`direction`]: the one place that maps directions to texture coordinates and back.
 //! - [`preconvolve`]: the light maps `L_n` for a list of Phong exponents, by spherical-harmonic
 //!   (Funk-Hecke) zonal convolution whose band limit and output resolution follow from a
 //!   tolerance; [`reference`] is the brute-force f64 ground truth it is tested against.
 //! - [`LightMap`]: a preconvolved map with its bilinear look-up ([`lightmap`]).
+//! - [`random`]: the seeded generator and seed derivation every crate's reproducibility rests on.
 //! - [`report`]: error against run time of the fast method, measured against the reference.
 //!
 //! Conventions (`docs/conventions.md`): +y up, texel centre `(u, v)` has polar angle `theta = pi v` from
@@ -18,6 +20,7 @@
 
 pub mod bright;
 pub mod direction;
+pub mod durable;
 pub mod envmap;
 pub mod error;
 pub mod io;
@@ -25,6 +28,7 @@ pub mod legendre;
 pub mod lightmap;
 pub mod lobe;
 pub mod preconvolve;
+pub mod random;
 pub mod reference;
 pub mod report;
 pub mod sh;

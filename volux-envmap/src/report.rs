@@ -18,6 +18,7 @@ use crate::envmap::{EnvMap, Rgb};
 use crate::error::EnvMapError;
 use crate::lightmap::LightMap;
 use crate::preconvolve::{PreconvolveOptions, preconvolve};
+use crate::random::SplitMix64;
 use crate::reference::Reference;
 
 /// Relative errors of a set of samples.
@@ -52,28 +53,6 @@ pub fn compare(fast: &[Rgb], reference: &[[f64; 3]]) -> ErrorStats {
     ErrorStats {
         rel_rms: (err2 / ref2).sqrt(),
         max_rel,
-    }
-}
-
-/// A small deterministic generator (SplitMix64) so reports are reproducible.
-pub struct SplitMix64(u64);
-
-impl SplitMix64 {
-    pub fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[0, 1)`.
-    pub fn next_f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
     }
 }
 

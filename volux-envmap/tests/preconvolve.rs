@@ -3,8 +3,9 @@
 use std::path::PathBuf;
 
 use volux_envmap::direction::{self, Dir};
+use volux_envmap::random::SplitMix64;
 use volux_envmap::reference::Reference;
-use volux_envmap::report::{SplitMix64, compare, random_directions};
+use volux_envmap::report::{compare, random_directions};
 use volux_envmap::{EnvMap, EnvMapError, LightMapSet, PreconvolveOptions, Rgb, io, preconvolve};
 
 fn asset(name: &str) -> PathBuf {

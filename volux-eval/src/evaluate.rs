@@ -7,6 +7,7 @@ use std::time::Instant;
 use burn::tensor::Device;
 use volux_data::contact_sheet::{self, ContactSheet};
 use volux_data::dataset::{DataError, SourceConfig};
+use volux_data::examples::ExamplesError;
 use volux_data::relighting::RelightError;
 use volux_data::synthetic_head::SyntheticHead;
 use volux_envmap::{LightMapSet, Rgb};
@@ -78,6 +79,8 @@ pub enum EvalError {
     Relight(#[from] RelightError),
     #[error("dataset")]
     Data(#[from] DataError),
+    #[error("dataset")]
+    Examples(#[from] ExamplesError),
     #[error("sliced Wasserstein distance")]
     Swd(#[from] SwdError),
 }

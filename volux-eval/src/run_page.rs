@@ -52,7 +52,7 @@ pub enum RunPageError {
     Write {
         path: PathBuf,
         #[source]
-        source: volux_envmap::EnvMapError,
+        source: volux_envmap::durable::FileError,
     },
 }
 
@@ -306,11 +306,9 @@ pub fn run_page(run: &Path, title: &str) -> Result<String, RunPageError> {
 /// Writes [`run_page`] to `out`, atomically.
 pub fn save_run_page(run: &Path, title: &str, out: &Path) -> Result<(), RunPageError> {
     let html = run_page(run, title)?;
-    volux_envmap::io::write_atomically(out, |tmp| {
-        std::fs::write(tmp, html.as_bytes()).map_err(|source| volux_envmap::EnvMapError::Io {
-            path: tmp.to_path_buf(),
-            source,
-        })
+    use volux_envmap::durable::{FileError, write_atomically};
+    write_atomically(out, |tmp| {
+        std::fs::write(tmp, html.as_bytes()).map_err(FileError::at(tmp))
     })
     .map_err(|source| RunPageError::Write {
         path: out.to_path_buf(),

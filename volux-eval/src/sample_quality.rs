@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use burn::tensor::Device;
 use volux_data::batch::Batch;
-use volux_data::dataset::Examples;
+use volux_data::examples::Examples;
 use volux_data::training_sample::LightingDraw;
 use volux_envmap::LightMapSet;
 use volux_model::generator::Generator;

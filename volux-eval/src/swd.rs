@@ -12,7 +12,7 @@
 
 use rayon::prelude::*;
 use serde::Serialize;
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::{self, SplitMix64};
 
 /// Side of a descriptor patch.
 pub const PATCH: usize = 7;
@@ -316,7 +316,7 @@ pub fn swd(a: &ImageSet, b: &ImageSet, options: &SwdOptions) -> Result<Swd, SwdE
     for (l, &side) in sides.iter().enumerate() {
         // Both sets take patches at the same random places (common random numbers): a set
         // against itself is exactly 0, and sampling noise partly cancels.
-        let level_seed = options.seed ^ (l as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let level_seed = random::mix(options.seed, l as u64 + 1, random::GOLDEN_GAMMA);
         let (mut rng_a, mut rng_b) = (SplitMix64::new(level_seed), SplitMix64::new(level_seed));
         let la: Vec<&[f32]> = pa.iter().map(|p| p[l].as_slice()).collect();
         let lb: Vec<&[f32]> = pb.iter().map(|p| p[l].as_slice()).collect();

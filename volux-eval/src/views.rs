@@ -72,7 +72,7 @@ pub fn render_model(
     background: Rgb,
 ) -> Result<Vec<Rendered>, SampleError> {
     let device = z.device();
-    let lighting = volux_data::batch::lighting_tensors(lights, env_yaws, &device)?;
+    let lighting = volux_model::light_lookup::lighting_tensors(lights, env_yaws, &device)?;
     let wants = GeneratorWants {
         albedo_lo: false,
         features_lo: false,

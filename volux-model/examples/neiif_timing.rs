@@ -11,7 +11,8 @@
 
 use burn::tensor::{Device, Distribution, Tensor};
 use volux_model::backend::to_f32_vec;
-use volux_model::neiif::{FieldWants, NeiifConfig};
+use volux_model::field::FieldWants;
+use volux_model::neiif::NeiifConfig;
 #[path = "common/timing.rs"]
 mod timing;
 use timing::median_ms;

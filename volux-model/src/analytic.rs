@@ -4,9 +4,8 @@
 use burn::tensor::{Tensor, activation};
 use volux_envmap::LightMap;
 
-use crate::neiif::{FieldOutput, FieldWants, normals_from_gradient};
+use crate::field::{Field, FieldOutput, FieldWants, normals_from_gradient};
 use crate::ray_sampling::CameraConfig;
-use crate::volume_rendering::Field;
 
 /// What one ray of a [`SoftSphere`] renders to, in f64.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -162,6 +162,14 @@ pub fn to_f32_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
         .expect("f32 tensor data")
 }
 
+/// A tensor's values as f64, row-major (reads back from the device; an f64 tensor exactly).
+pub fn to_f64_vec<const D: usize>(t: Tensor<D>) -> Vec<f64> {
+    t.into_data()
+        .convert::<f64>()
+        .try_to_vec::<f64>()
+        .expect("f64 tensor data")
+}
+
 /// Largest absolute difference; NaN if any value is NaN (so garbage never reads as agreement).
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f64 {
     if a.len() != b.len() {

@@ -643,7 +643,7 @@ mod tests {
     use super::*;
     use crate::backend::to_f32_vec;
     use crate::test_support::{conv2d_f64, normals};
-    use volux_envmap::report::SplitMix64;
+    use volux_envmap::random::SplitMix64;
 
     /// `(x: [batch, c, h, w], o, k, geometry)`: the discriminators' shapes (3x3 'same', 3x3
     /// stride 2 on odd planes, 1x1) at reduced width, the batches that run images in

@@ -393,12 +393,12 @@ pub fn minibatch_std_input_gradient(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::backend::to_f32_vec;
+    use crate::backend::{to_f32_vec, to_f64_vec};
     use crate::bias_act::bias_lrelu_reference;
     use crate::test_support::{Reseed, normals};
     use burn::module::Param;
     use burn::tensor::{DType, Gradients, TensorData};
-    use volux_envmap::report::SplitMix64;
+    use volux_envmap::random::SplitMix64;
 
     fn tensor<const D: usize>(
         v: Vec<f64>,
@@ -407,13 +407,6 @@ mod tests {
         dtype: DType,
     ) -> Tensor<D> {
         Tensor::from_data(TensorData::new(v, shape), (device, dtype))
-    }
-
-    fn to_f64_vec<const D: usize>(t: Tensor<D>) -> Vec<f64> {
-        t.into_data()
-            .convert::<f64>()
-            .try_to_vec::<f64>()
-            .expect("float tensor data")
     }
 
     /// 3 channels at 16x16: channels 4 (16x16), 8 (8x8), 16 (4x4).

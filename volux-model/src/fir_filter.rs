@@ -364,7 +364,7 @@ mod tests {
     use super::*;
     use crate::backend::to_f32_vec;
     use crate::test_support::normals;
-    use volux_envmap::report::SplitMix64;
+    use volux_envmap::random::SplitMix64;
 
     /// Every shape the model uses, and the awkward ones: odd sizes, strides that leave
     /// inputs unread, filters longer than the padding, a 1x1 plane.

@@ -20,9 +20,10 @@
 //! gradients of a matmul or convolution each cost one forward).
 
 use crate::discriminator::DiscriminatorConfig;
+use crate::field::FieldWants;
 use crate::generator::{GeneratorConfig, GeneratorWants};
 use crate::mapping::MappingNetworkConfig;
-use crate::neiif::{FieldWants, NeiifConfig};
+use crate::neiif::NeiifConfig;
 use crate::positional_encoding::PositionalEncodingConfig;
 use crate::relighting::RelightingConfig;
 use crate::upsampler::UpsamplerConfig;

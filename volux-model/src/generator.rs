@@ -12,15 +12,14 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 
+use crate::light_lookup::Lighting;
 use crate::mapping::{MappingNetwork, MappingNetworkConfig};
-use crate::neiif::{Neiif, NeiifConfig};
+use crate::neiif::{LatentField, Neiif, NeiifConfig};
 use crate::profile::{self, Phase};
 use crate::ray_sampling::{CameraConfig, camera_basis, camera_ray_batch};
 use crate::relighting::{RelightingConfig, RelightingNet};
 use crate::upsampler::{Upsampler, UpsamplerConfig, bilinear_upsample};
-use crate::volume_rendering::{
-    LatentField, Lighting, RenderOutput, RenderWants, RendererConfig, render,
-};
+use crate::volume_rendering::{RenderOutput, RenderWants, RendererConfig, render};
 
 /// Sizes of every part of a generator.
 #[derive(Config, Debug)]

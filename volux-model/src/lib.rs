@@ -22,6 +22,7 @@ pub mod blur;
 pub mod convolution;
 pub mod discriminator;
 pub mod equalized;
+pub mod field;
 pub mod fir_filter;
 pub mod flex_extension;
 pub mod flops;

@@ -15,6 +15,9 @@ use burn::tensor::{Device, Tensor, TensorData};
 use volux_envmap::LightMap;
 
 mod bilinear;
+mod lighting;
+
+pub use lighting::{Lighting, LightingError, LightingTensorError, lighting_tensors};
 
 /// Keeps `atan2` and `sqrt` differentiable exactly at the poles, where the azimuth is
 /// undefined (it moves `theta` by at most 1e-6 rad there).
@@ -133,7 +136,8 @@ mod tests {
     use super::*;
     use crate::backend::to_f32_vec;
     use volux_envmap::direction;
-    use volux_envmap::report::{SplitMix64, random_directions};
+    use volux_envmap::random::SplitMix64;
+    use volux_envmap::report::random_directions;
 
     fn map(seed: u64, exponent: u32, h: usize) -> LightMap {
         let mut rng = SplitMix64::new(seed);

@@ -24,28 +24,15 @@ use burn::tensor::{Device, Tensor, activation};
 
 use crate::batched_matmul::batched_matmul;
 use crate::equalized::{EqualizedLinear, EqualizedLinearConfig};
+use crate::field::{Field, FieldOutput, FieldWants, normals_from_gradient};
 use crate::fused_activation;
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
 use crate::positional_encoding::{PositionalEncoding, PositionalEncodingConfig};
+use crate::profile::{self, Phase};
 
 /// `1 / sqrt(E[a(x)^2])` for `x ~ N(0, 1)`: keeps unit second moment through a layer, as
 /// StyleGAN2's `sqrt(2)` does for its leaky ReLU.
 pub const SMOOTH_GAIN: f64 = 1.125;
-
-/// Below this squared gradient norm the normal shrinks towards zero instead of dividing by
-/// (almost) nothing: `n = -g / sqrt(|g|^2 + NORMAL_EPS2)`.
-pub const NORMAL_EPS2: f64 = 1e-12;
-
-/// Normals from density gradients `[.., .., 3]`: `-g / sqrt(|g|^2 + NORMAL_EPS2)`.
-pub fn normals_from_gradient(g: Tensor<3>) -> Tensor<3> {
-    let norm = g
-        .clone()
-        .powi_scalar(2)
-        .sum_dim(2)
-        .add_scalar(NORMAL_EPS2)
-        .sqrt();
-    g.neg() / norm
-}
 
 /// The smooth activation `gain (0.2 x + 0.8 softplus(x))`.
 pub fn smooth_lrelu<const D: usize>(x: Tensor<D>) -> Tensor<D> {
@@ -128,45 +115,6 @@ pub struct Neiif {
     pub sphere_prior: (f64, f64),
 }
 
-/// Which outputs a query needs; what is not needed is not computed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct FieldWants {
-    /// Gradient of the density and normals (a reverse sweep through layers 1-4).
-    pub normals: bool,
-    /// Albedo, specular weights and features (layers 5-6 and the head).
-    pub appearance: bool,
-}
-
-impl FieldWants {
-    /// Everything.
-    pub const ALL: Self = Self {
-        normals: true,
-        appearance: true,
-    };
-    /// Density only (layers 1-4 and the density head).
-    pub const DENSITY: Self = Self {
-        normals: false,
-        appearance: false,
-    };
-}
-
-/// What the field gives at `[batch, points]` positions.
-#[derive(Clone, Debug)]
-pub struct FieldOutput {
-    /// `[batch, points]`, non-negative.
-    pub sigma: Tensor<2>,
-    /// `d sigma / dx`, `[batch, points, 3]`.
-    pub grad_sigma: Option<Tensor<3>>,
-    /// `-grad / |grad|` (guarded), `[batch, points, 3]`.
-    pub normals: Option<Tensor<3>>,
-    /// `[batch, points, 3]` in [0, 1].
-    pub albedo: Option<Tensor<3>>,
-    /// `[batch, points, specular_lobes]`, non-negative.
-    pub specular_weights: Option<Tensor<3>>,
-    /// The layer-6 output `f`, `[batch, points, width]`.
-    pub features: Option<Tensor<3>>,
-}
-
 /// The activation's two kernels in the field: applied to pre-activations, and its pullback
 /// in the reverse sweep that gives the normals.
 #[derive(Clone, Copy, Debug)]
@@ -188,6 +136,30 @@ impl ActivationKernels {
         activate: fused_activation::activate_reference,
         pullback: fused_activation::pullback::pullback_reference,
     };
+}
+
+/// A NeIIF with the latents of a batch.
+pub struct LatentField<'a> {
+    pub field: &'a Neiif,
+    /// `[batch, w_dim]`.
+    pub w: Tensor<2>,
+}
+
+impl Field for LatentField<'_> {
+    fn query(&self, points: Tensor<3>, wants: FieldWants) -> FieldOutput {
+        profile::timed(Phase::Field, || {
+            self.field.forward(points, self.w.clone(), wants)
+        })
+    }
+
+    /// Layers 1 to the density layer and the density head, on the field's parameters
+    /// without autodiff: nothing of it enters the graph.
+    fn density(&self, points: Tensor<3>) -> Tensor<2> {
+        self.field
+            .valid()
+            .forward(points.inner(), self.w.clone().inner(), FieldWants::DENSITY)
+            .sigma
+    }
 }
 
 impl NeiifConfig {
@@ -386,7 +358,7 @@ mod tests {
     use crate::backend::to_f32_vec;
     use crate::test_support::{Reseed, normals};
     use burn::tensor::{DType, Distribution, TensorData};
-    use volux_envmap::report::SplitMix64;
+    use volux_envmap::random::SplitMix64;
 
     fn small(frequencies: usize, device: &Device) -> Neiif {
         small_with_prior(frequencies, 0.0, device)

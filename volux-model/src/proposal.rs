@@ -32,12 +32,13 @@
 
 use burn::tensor::{Int, Tensor};
 
+use crate::field::Field;
 use crate::profile::{self, Phase};
 use crate::ray_marching;
 use crate::ray_sampling::{
     CameraConfig, segment_edges, segment_importance_samples, stratified_samples,
 };
-use crate::volume_rendering::{Field, RendererConfig};
+use crate::volume_rendering::RendererConfig;
 
 /// Compositing weights `[rays, samples + 1]` of the segments `near..t_0, t_0..t_1, ...,
 /// t_last..far` between sorted depths `t` with densities `sigma` (both `[rays, samples]`):

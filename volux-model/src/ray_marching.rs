@@ -74,7 +74,7 @@ mod tests {
     use super::*;
     use crate::backend::to_f32_vec;
     use burn::tensor::{Device, TensorData};
-    use volux_envmap::report::SplitMix64;
+    use volux_envmap::random::SplitMix64;
 
     fn t2(v: &[f64], shape: [usize; 2], device: &Device) -> Tensor<2> {
         let v: Vec<f32> = v.iter().map(|x| *x as f32).collect();

@@ -14,11 +14,11 @@ use burn::tensor::{Device, Distribution, Tensor};
 
 use crate::analytic::SoftSphere;
 use crate::backend::to_f32_vec;
-use crate::neiif::NeiifConfig;
+use crate::field::Field;
+use crate::light_lookup::Lighting;
+use crate::neiif::{LatentField, NeiifConfig};
 use crate::ray_sampling::camera_ray_batch;
-use crate::volume_rendering::{
-    Field, LatentField, Lighting, RenderOutput, RenderWants, RendererConfig, render,
-};
+use crate::volume_rendering::{RenderOutput, RenderWants, RendererConfig, render};
 
 /// What the report measures.
 #[derive(Clone, Debug)]

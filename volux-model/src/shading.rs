@@ -10,8 +10,8 @@
 use burn::config::Config;
 use burn::tensor::Tensor;
 
+use crate::light_lookup::Lighting;
 use crate::light_lookup::directions_to_uv;
-use crate::volume_rendering::Lighting;
 
 /// Where the renderer evaluates the light maps.
 #[derive(Config, Debug, Copy, PartialEq, Eq)]
@@ -73,10 +73,11 @@ mod tests {
     use super::*;
     use crate::analytic::SoftSphere;
     use crate::backend::to_f32_vec;
+    use crate::neiif::LatentField;
     use crate::neiif::NeiifConfig;
     use crate::ray_sampling::{camera_ray_batch, camera_rays};
     use crate::test_support::{Scaled, lighting, wave_light_maps as light_maps};
-    use crate::volume_rendering::{LatentField, RenderOutput, RenderWants, RendererConfig, render};
+    use crate::volume_rendering::{RenderOutput, RenderWants, RendererConfig, render};
 
     fn sphere() -> SoftSphere {
         SoftSphere {

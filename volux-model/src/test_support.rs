@@ -3,7 +3,7 @@
 
 use burn::module::{ModuleMapper, Param};
 use burn::tensor::{DType, Tensor, TensorData};
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 /// A standard normal sample (Box-Muller on SplitMix64).
 pub fn normal(rng: &mut SplitMix64) -> f64 {
@@ -47,14 +47,14 @@ impl ModuleMapper for Reseed {
 
 /// A field whose density is another's times a constant (the stiff and empty cases of the
 /// renderer's tests).
-pub struct Scaled<'a, F: crate::volume_rendering::Field>(pub &'a F, pub f64);
+pub struct Scaled<'a, F: crate::field::Field>(pub &'a F, pub f64);
 
-impl<F: crate::volume_rendering::Field> crate::volume_rendering::Field for Scaled<'_, F> {
+impl<F: crate::field::Field> crate::field::Field for Scaled<'_, F> {
     fn query(
         &self,
         points: Tensor<3>,
-        wants: crate::neiif::FieldWants,
-    ) -> crate::neiif::FieldOutput {
+        wants: crate::field::FieldWants,
+    ) -> crate::field::FieldOutput {
         let mut out = self.0.query(points, wants);
         out.sigma = out.sigma.mul_scalar(self.1);
         out
@@ -94,14 +94,14 @@ pub fn lighting(
     maps: &[Vec<volux_envmap::LightMap>],
     yaw: &[f32],
     device: &burn::tensor::Device,
-) -> crate::volume_rendering::Lighting {
+) -> crate::light_lookup::Lighting {
     let batches = (0..EXPONENTS.len())
         .map(|i| {
             let per: Vec<&volux_envmap::LightMap> = maps.iter().map(|m| &m[i]).collect();
             crate::light_lookup::LightMapBatch::new(&per, device).unwrap()
         })
         .collect();
-    crate::volume_rendering::Lighting::new(batches, Some(Tensor::from_floats(yaw, device))).unwrap()
+    crate::light_lookup::Lighting::new(batches, Some(Tensor::from_floats(yaw, device))).unwrap()
 }
 
 /// A convolution in f64 loops, straight from the definition: `x: [b, ci, h, w]`,

@@ -16,55 +16,15 @@
 //! shading. Like EG3D's renderer this file knows the field only through [`Field`].
 
 use burn::config::Config;
-use burn::module::Module;
 use burn::tensor::{IndexingUpdateOp, Tensor};
 
-use crate::light_lookup::LightMapBatch;
-use crate::neiif::{FieldOutput, FieldWants, Neiif};
-use crate::profile::{self, Phase};
+use crate::field::{Field, FieldWants};
+use crate::light_lookup::Lighting;
 use crate::proposal;
 use crate::ray_marching;
 use crate::ray_sampling::{CameraConfig, importance_samples, segment_lengths, stratified_samples};
 pub use crate::shading::Shading;
 use crate::shading::{normalize_accumulated, shade};
-
-/// Anything that gives densities (and, when asked, normals and appearance) at points
-/// `[batch, points, 3]`.
-pub trait Field {
-    fn query(&self, points: Tensor<3>, wants: FieldWants) -> FieldOutput;
-
-    /// Densities alone, `[batch, points]`, for placing samples: no normals, no appearance
-    /// and no autodiff (the result is a constant to any gradient; [`crate::proposal`]).
-    fn density(&self, points: Tensor<3>) -> Tensor<2> {
-        self.query(points.inner(), FieldWants::DENSITY)
-            .sigma
-            .inner()
-    }
-}
-
-/// A NeIIF with the latents of a batch.
-pub struct LatentField<'a> {
-    pub field: &'a Neiif,
-    /// `[batch, w_dim]`.
-    pub w: Tensor<2>,
-}
-
-impl Field for LatentField<'_> {
-    fn query(&self, points: Tensor<3>, wants: FieldWants) -> FieldOutput {
-        profile::timed(Phase::Field, || {
-            self.field.forward(points, self.w.clone(), wants)
-        })
-    }
-
-    /// Layers 1 to the density layer and the density head, on the field's parameters
-    /// without autodiff: nothing of it enters the graph.
-    fn density(&self, points: Tensor<3>) -> Tensor<2> {
-        self.field
-            .valid()
-            .forward(points.inner(), self.w.clone().inner(), FieldWants::DENSITY)
-            .sigma
-    }
-}
 
 /// Configuration of the renderer.
 #[derive(Config, Debug)]
@@ -142,54 +102,6 @@ impl RendererConfig {
     /// Density-only field queries per ray (placing samples only).
     pub fn density_only_samples(&self) -> usize {
         self.proposal + self.refine
-    }
-}
-
-/// Light maps for shading: `maps[i]` holds exponent `n_i` for every batch element, the first
-/// must be `n = 1` (it also gives `D`), and `yaw` rotates each element's environment.
-#[derive(Clone, Debug)]
-pub struct Lighting {
-    pub maps: Vec<LightMapBatch>,
-    /// `[batch]` radians, or `None`.
-    pub yaw: Option<Tensor<1>>,
-}
-
-/// Why lighting cannot be used.
-#[derive(Debug, thiserror::Error, PartialEq)]
-pub enum LightingError {
-    #[error("lighting needs at least one light map")]
-    NoMaps,
-    #[error(
-        "the first light map must have Phong exponent 1 (it gives the diffuse shading), got {0}"
-    )]
-    FirstNotDiffuse(u32),
-    #[error("light map {index} (n={exponent}) has batch {batch}, map 0 has {batch0}")]
-    BatchMismatch {
-        index: usize,
-        exponent: u32,
-        batch: usize,
-        batch0: usize,
-    },
-}
-
-impl Lighting {
-    /// Checks that the first map is `n = 1` and that all share one batch size.
-    pub fn new(maps: Vec<LightMapBatch>, yaw: Option<Tensor<1>>) -> Result<Self, LightingError> {
-        let first = maps.first().ok_or(LightingError::NoMaps)?;
-        if first.exponent() != 1 {
-            return Err(LightingError::FirstNotDiffuse(first.exponent()));
-        }
-        for (index, m) in maps.iter().enumerate() {
-            if m.batch() != first.batch() {
-                return Err(LightingError::BatchMismatch {
-                    index,
-                    exponent: m.exponent(),
-                    batch: m.batch(),
-                    batch0: first.batch(),
-                });
-            }
-        }
-        Ok(Self { maps, yaw })
     }
 }
 
@@ -478,7 +390,7 @@ mod tests {
     use super::*;
     use crate::analytic::{RayReference, SoftSphere};
     use crate::backend::to_f32_vec;
-    use crate::neiif::NeiifConfig;
+    use crate::neiif::{LatentField, NeiifConfig};
     use crate::ray_sampling::{camera_ray_batch, camera_rays};
     use crate::test_support::{Scaled, lighting, wave_light_maps as light_maps};
     use burn::tensor::{Device, Distribution};
@@ -707,27 +619,6 @@ mod tests {
         assert!(out.albedo.is_some());
         assert!(out.normals.is_none() && out.diffuse.is_none() && out.features.is_none());
         assert!(out.depth.is_none());
-    }
-
-    #[test]
-    fn lighting_is_checked() {
-        let device = Device::flex();
-        let maps = light_maps(1, 1.0);
-        let spec_only = LightMapBatch::new(&[&maps[1]], &device).unwrap();
-        assert_eq!(
-            Lighting::new(vec![spec_only], None).unwrap_err(),
-            LightingError::FirstNotDiffuse(16)
-        );
-        assert_eq!(
-            Lighting::new(vec![], None).unwrap_err(),
-            LightingError::NoMaps
-        );
-        let one = LightMapBatch::new(&[&maps[0]], &device).unwrap();
-        let two = LightMapBatch::new(&[&maps[1], &maps[1]], &device).unwrap();
-        assert!(matches!(
-            Lighting::new(vec![one, two], None),
-            Err(LightingError::BatchMismatch { index: 1, .. })
-        ));
     }
 }
 

@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 use volux_model::generator::Generator;
 
 use crate::networks::{Discriminators, first_non_finite};
-use volux_envmap::io::{sync_dir, sync_file};
+use volux_envmap::durable::{sync_dir, sync_file};
 
 /// Bumped when the layout changes.
 pub const CHECKPOINT_FORMAT: u32 = 1;
@@ -97,6 +97,10 @@ pub struct TrainState {
     /// The config file's path when training started, and its text.
     pub config_path: PathBuf,
     pub config: String,
+    /// The config with every default filled in ([`crate::config::TrainConfig::resolved`]), as
+    /// this invocation of the run used it. Empty in checkpoints older than the field.
+    #[serde(default)]
+    pub resolved_config: String,
 }
 
 /// The networks and optimiser states a checkpoint holds.

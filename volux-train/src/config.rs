@@ -22,6 +22,13 @@ use crate::schedule::ScheduleConfig;
 pub enum ConfigError {
     #[error("{path}: {message}")]
     File { path: PathBuf, message: String },
+    /// `[data]` cannot be used: the data's own error, with its causes (boxed: it is large).
+    #[error("{}", path.display())]
+    Data {
+        path: PathBuf,
+        #[source]
+        source: Box<DataError>,
+    },
 }
 
 /// The largest batch a config may ask for (the paper trains at 24; a batch of 10^12 would
@@ -172,7 +179,7 @@ impl ModelConfig {
 }
 
 /// `[train]`: batch, optimisers, R1, EMA, the non-finite guard.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct OptimConfig {
     /// Seed of latents, ray jitter and initial weights.
@@ -226,7 +233,7 @@ impl Default for OptimConfig {
 }
 
 /// `[output]`: how often to log, draw the sample grid and checkpoint.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct OutputConfig {
     /// Steps per metrics line (losses are averaged over them).
@@ -264,7 +271,7 @@ impl Default for OutputConfig {
 }
 
 /// Everything a training config holds except `[data]`.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 struct ConfigFile {
     model: ModelConfig,
@@ -316,7 +323,10 @@ impl TrainConfig {
         };
         let (data, data_hashed) = DataConfig::from_text(&text, path).map_err(|e| match e {
             DataError::File { message, .. } => bad(message),
-            other => bad(volux_envmap::error::chain(&other)),
+            other => ConfigError::Data {
+                path: path.to_path_buf(),
+                source: Box::new(other),
+            },
         })?;
         let file: ConfigFile = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
         let config = TrainConfig {
@@ -429,6 +439,30 @@ impl TrainConfig {
     }
 
     /// The table that fixes every tensor's shape (compared when resuming).
+    /// The whole config with every default filled in, as TOML (StyleGAN2 saves the same with
+    /// each snapshot): what the run actually used, whatever the file left out. Loading it
+    /// again gives the same config ([`TrainConfig::from_text`]; tested).
+    pub fn resolved(&self) -> String {
+        #[derive(Serialize)]
+        struct Resolved<'a> {
+            model: &'a ModelConfig,
+            train: &'a OptimConfig,
+            schedule: &'a ScheduleConfig,
+            loss: &'a LossWeights,
+            output: &'a OutputConfig,
+            data: &'a DataConfig,
+        }
+        toml::to_string(&Resolved {
+            model: &self.model,
+            train: &self.train,
+            schedule: &self.schedule,
+            loss: &self.loss,
+            output: &self.output,
+            data: &self.data,
+        })
+        .unwrap_or_else(|e| format!("# the resolved config could not be written: {e}\n"))
+    }
+
     pub fn shapes(&self) -> String {
         // `shading = "volume"` is the default written out: the same model as no key.
         let mut model = self.model.clone();
@@ -459,7 +493,8 @@ volume_resolution = 32
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("run.toml");
         std::fs::write(&path, text).unwrap();
-        TrainConfig::load(&path).map_err(|e| e.to_string())
+        // The whole chain, as the binary prints it: `[data]` errors keep their causes.
+        TrainConfig::load(&path).map_err(|e| volux_envmap::error::chain(&e))
     }
 
     #[test]
@@ -588,6 +623,45 @@ volume_resolution = 32
             let e = load(&text).expect_err(key);
             assert!(e.contains("run.toml"), "{e}");
             assert!(e.contains(key), "expected `{key}` in: {e}");
+        }
+    }
+
+    /// The resolved config names every key, and loads back to the same config, for the
+    /// shipped configs and for one that leaves nearly everything to the defaults.
+    #[test]
+    fn the_resolved_config_fills_in_every_default_and_loads_back_the_same() {
+        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+        let mut configs: Vec<TrainConfig> = ["quickstart.toml", "synthetic64.toml"]
+            .iter()
+            .map(|name| TrainConfig::load(&root.join(name)).unwrap())
+            .collect();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.toml");
+        configs.push(TrainConfig::from_text(TINY.to_string(), &path).unwrap());
+        for config in configs {
+            let text = config.resolved();
+            for key in [
+                "lr_g",
+                "r1_gamma",
+                "ema_rampup",
+                "fade_kimg",
+                "geometry",
+                "eval_samples",
+                "volume_resolution",
+                "identities",
+                "procedural_height",
+                "turbidity",
+            ] {
+                assert!(text.contains(key), "{key} missing from:\n{text}");
+            }
+            let again = TrainConfig::from_text(text.clone(), &config.path).unwrap();
+            assert_eq!(again.model, config.model);
+            assert_eq!(again.train, config.train);
+            assert_eq!(again.schedule, config.schedule);
+            assert_eq!(again.loss, config.loss);
+            assert_eq!(again.output, config.output);
+            assert_eq!(again.data, config.data, "{text}");
+            assert_eq!(again.resolved(), text);
         }
     }
 }

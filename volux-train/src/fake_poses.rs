@@ -7,7 +7,7 @@
 
 use serde::{Deserialize, Serialize};
 use volux_data::pose_distribution::PoseDistribution;
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 /// Where the fakes' cameras come from (`[train] fake_poses`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]

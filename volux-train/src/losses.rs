@@ -8,7 +8,7 @@
 
 use burn::tensor::Tensor;
 use burn::tensor::activation::softplus;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use volux_model::discriminator::{Discriminator, r1_penalty};
 use volux_model::upsampler::bilinear_upsample;
 
@@ -99,7 +99,7 @@ pub fn real_shading_condition(
 
 /// Weights of the loss terms (`[loss]` in a training config). A weight of 0 turns its term
 /// off, and with it its discriminator and the renders only it needs.
-#[derive(Clone, Copy, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LossWeights {
     /// `L_A`: albedo, low and high resolution.
@@ -160,7 +160,7 @@ mod tests {
     }
 
     fn scalar(t: Tensor<1>) -> f64 {
-        f64::from(t.into_data().try_to_vec::<f32>().unwrap()[0])
+        f64::from(to_f32_vec(t)[0])
     }
 
     fn softplus64(x: f64) -> f64 {
@@ -198,12 +198,7 @@ mod tests {
         // softplus(1e4) = 1e4: the loss is dominated by it, exactly.
         assert!((value - (1e4 + 1e4 + 1e4 + 3.0 * 88.0) / 5.0 - 3.0 * 2f64.ln() / 5.0).abs() < 1.0);
         let grads = loss.backward();
-        let g: Vec<f32> = logits
-            .grad(&grads)
-            .unwrap()
-            .into_data()
-            .try_to_vec()
-            .unwrap();
+        let g = to_f32_vec(logits.grad(&grads).unwrap());
         assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
         // d/dx [softplus(x) + softplus(-x) + softplus(-x)] / 5 = (sigmoid(x) - 2 sigmoid(-x)) / 5.
         let want = |x: f64| (1.0 / (1.0 + (-x).exp()) - 2.0 / (1.0 + x.exp())) / 5.0;
@@ -244,7 +239,7 @@ mod tests {
         let (relit, d, s) = (ones(3), ones(3), ones(3));
         let x = shading_condition(relit.clone(), d.clone(), s.clone());
         assert_eq!(x.dims(), [1, 9, 2, 2]);
-        let v: Vec<f32> = x.clone().inner().into_data().try_to_vec().unwrap();
+        let v = to_f32_vec(x.clone().inner());
         // Channel 0 is the relit image as it is, channel 3 (index 12) log1p of the diffuse.
         assert_eq!(v[0], 1.0);
         assert!((v[12] - 1f32.ln_1p()).abs() < 1e-6);

@@ -20,10 +20,10 @@ use std::path::{Path, PathBuf};
 use burn::tensor::{Tensor, TensorData};
 use isosurface::marching_cubes::MarchingCubes;
 use isosurface::source::Source;
-use volux_envmap::EnvMapError;
-use volux_envmap::io::{linear_to_srgb, write_atomically};
+use volux_envmap::durable::{FileError, write_atomically};
+use volux_envmap::io::linear_to_srgb;
 use volux_model::backend::to_f32_vec;
-use volux_model::neiif::FieldWants;
+use volux_model::field::FieldWants;
 
 use crate::pretrained::TrainedGenerator;
 use crate::sampling;
@@ -53,7 +53,7 @@ pub enum MeshError {
     Write {
         path: PathBuf,
         #[source]
-        source: EnvMapError,
+        source: FileError,
     },
 }
 
@@ -335,10 +335,7 @@ pub fn save_mesh(path: &Path, mesh: &Mesh) -> Result<(), MeshError> {
         }
     };
     write_atomically(path, |tmp| {
-        let file = std::fs::File::create(tmp).map_err(|source| EnvMapError::Io {
-            path: tmp.to_path_buf(),
-            source,
-        })?;
+        let file = std::fs::File::create(tmp).map_err(FileError::at(tmp))?;
         let mut out = BufWriter::new(file);
         let written = if ply {
             write_ply(&mut out, mesh)
@@ -347,10 +344,7 @@ pub fn save_mesh(path: &Path, mesh: &Mesh) -> Result<(), MeshError> {
         };
         written
             .and_then(|()| out.flush())
-            .map_err(|source| EnvMapError::Io {
-                path: tmp.to_path_buf(),
-                source,
-            })
+            .map_err(FileError::at(tmp))
     })
     .map_err(|source| MeshError::Write {
         path: path.to_path_buf(),

@@ -3,13 +3,13 @@
 //! diffuse, specular, relit, depth per column).
 
 use burn::tensor::{Device, Tensor, TensorData};
-use volux_data::batch::{LightingTensorError, lighting_tensors};
 use volux_data::contact_sheet::{self, ContactSheet};
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 use volux_envmap::{LightMapSet, Rgb};
 use volux_model::backend::to_f32_vec;
 use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
-use volux_model::volume_rendering::Lighting;
+use volux_model::light_lookup::Lighting;
+use volux_model::light_lookup::{LightingTensorError, lighting_tensors};
 
 /// The latent of `seed`: `z_dim` standard normal numbers (Box-Muller on SplitMix64).
 pub fn latent(seed: u64, z_dim: usize) -> Vec<f32> {

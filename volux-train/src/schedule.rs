@@ -4,7 +4,7 @@
 //! config). Which loss terms run follows from the stage and the weights: a term whose weight
 //! is 0 never runs.
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use crate::losses::LossWeights;
 
@@ -15,7 +15,7 @@ pub const PAPER_ITERATIONS: (u64, u64) = (1_000_000, 500_000);
 pub const PAPER_BATCH: u64 = 24;
 
 /// Stage lengths (`[schedule]` in a training config), in thousands of images.
-#[derive(Clone, Copy, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ScheduleConfig {
     pub stage1_kimg: f64,

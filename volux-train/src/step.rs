@@ -20,9 +20,9 @@ use burn::tensor::Tensor;
 use volux_data::batch::BatchTensors;
 use volux_model::discriminator::Discriminator;
 use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
+use volux_model::light_lookup::Lighting;
 use volux_model::presets::DiscriminatorRole;
 use volux_model::profile::{self, Phase as ProfilePhase};
-use volux_model::volume_rendering::Lighting;
 
 use crate::losses::{
     LossWeights, discriminator_loss, generator_loss, lazy_r1, path_loss, real_shading_condition,

@@ -12,12 +12,14 @@ use std::time::Instant;
 use burn::module::Module;
 use burn::optim::ModuleOptimizer;
 use burn::tensor::Device;
-use volux_data::batch::{BatchLoader, LightingTensorError};
-use volux_data::dataset::{DataError, Examples};
+use volux_data::batch::BatchLoader;
+use volux_data::dataset::DataError;
+use volux_data::examples::{Examples, ExamplesError};
 use volux_envmap::LightMapSet;
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::{self, SplitMix64};
 use volux_model::backend::{BackendError, BackendKind};
 use volux_model::generator::{Generator, GeneratorError};
+use volux_model::light_lookup::LightingTensorError;
 use volux_model::profile::{self, Phase as ProfilePhase};
 
 use crate::adam::FusedAdam;
@@ -42,6 +44,8 @@ pub enum TrainError {
     Backend(#[from] BackendError),
     #[error(transparent)]
     Data(#[from] DataError),
+    #[error(transparent)]
+    Examples(#[from] ExamplesError),
     #[error(
         "{} already holds a run ({}): continue it with --resume, start afresh with --force (deletes that run), or choose another --out",
         out.display(),
@@ -149,7 +153,7 @@ pub struct Trainer {
     state: TrainState,
     lights: Arc<Vec<LightMapSet>>,
     examples: Examples,
-    loader: Option<BatchLoader<DataError>>,
+    loader: Option<BatchLoader<ExamplesError>>,
     metrics: MetricsLog,
     averages: Averages,
     last_checkpoint: Option<PathBuf>,
@@ -166,8 +170,7 @@ const POSE_PURPOSE: u64 = u64::MAX - 1;
 
 /// Mixes the run's seed with a step number and a purpose.
 fn derived_seed(seed: u64, step: u64, purpose: u64) -> u64 {
-    let mut rng = SplitMix64::new(seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ purpose);
-    rng.next_u64()
+    random::stream_seed(seed ^ purpose, step, random::GOLDEN_GAMMA)
 }
 
 impl Trainer {
@@ -203,6 +206,8 @@ impl Trainer {
             opt_d: adam(),
         };
         let config_path = std::fs::canonicalize(&config.path).unwrap_or(config.path.clone());
+        let resolved_config = config.resolved();
+        tracing::debug!("the config with its defaults filled in:\n{resolved_config}");
         let mut state = TrainState {
             format: CHECKPOINT_FORMAT,
             step: 0,
@@ -215,6 +220,7 @@ impl Trainer {
             discriminators: nets.d.names().iter().map(|s| s.to_string()).collect(),
             config_path,
             config: config.text.clone(),
+            resolved_config,
         };
         let mut last_checkpoint = None;
         if options.resume {
@@ -246,6 +252,7 @@ impl Trainer {
             state = TrainState {
                 config_path: state.config_path,
                 config: state.config,
+                resolved_config: state.resolved_config,
                 ..saved
             };
             last_checkpoint = Some(dir);

@@ -15,8 +15,7 @@ use openh264::encoder::{
     UsageType,
 };
 use openh264::formats::{RgbSliceU8, YUVBuffer};
-use volux_envmap::EnvMapError;
-use volux_envmap::io::write_atomically;
+use volux_envmap::durable::{FileError, write_atomically};
 
 /// The quantiser of every frame (0 lossless .. 51 coarsest): nearly transparent on renders.
 const QP: u8 = 20;
@@ -60,7 +59,7 @@ pub enum VideoError {
     Write {
         path: PathBuf,
         #[source]
-        source: EnvMapError,
+        source: FileError,
     },
 }
 
@@ -172,10 +171,7 @@ pub fn save_mp4(
     let (Some(sps), Some(pps)) = (sps, pps) else {
         return Err(VideoError::NoParameterSets { path: path_buf() });
     };
-    let io = |p: &Path, e: std::io::Error| EnvMapError::Io {
-        path: p.to_path_buf(),
-        source: e,
-    };
+    let io = |p: &Path, e: std::io::Error| FileError::at(p)(e);
     let duration = (TIMESCALE as f64 / fps).round() as u32;
     write_atomically(path, |tmp| {
         let file = std::fs::File::create(tmp).map_err(|e| io(tmp, e))?;

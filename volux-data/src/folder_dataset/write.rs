@@ -6,7 +6,7 @@ use std::fs;
 use std::path::Path;
 
 use volux_envmap::EnvMapError;
-use volux_envmap::io;
+use volux_envmap::{durable, io};
 
 use super::{ALBEDO, FolderError, FolderSample, MASKS, MAX_YAW, NORMALS, PHOTOS, POSES_FILE};
 
@@ -74,7 +74,7 @@ pub fn write_dataset(root: &Path, samples: &[FolderSample]) -> Result<(), Folder
         let _ = writeln!(csv, "{stem},{yaw},{pitch}");
     }
     let poses = root.join(POSES_FILE);
-    io::write_atomically(&poses, |tmp| {
+    durable::write_atomically(&poses, |tmp| {
         fs::write(tmp, &csv).map_err(|source| EnvMapError::Io {
             path: poses.clone(),
             source,

@@ -2,43 +2,18 @@
 //! content rather than by name, and an entry's content read once.
 
 use std::borrow::Cow;
-use std::fmt;
 use std::fs;
 use std::path::PathBuf;
 
-use sha2::{Digest, Sha256};
 use volux_envmap::{EnvMap, io};
+
+use crate::digest::Digest;
 
 use super::{HdriEntry, HdriError, HdriSource, Procedural};
 
 /// SHA-256 of what determines an entry's pixels: a file's bytes, or the canonical text of
 /// procedural parameters (with the map height).
-#[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct ContentKey(pub [u8; 32]);
-
-impl ContentKey {
-    /// SHA-256 of `bytes`.
-    pub fn of(bytes: &[u8]) -> ContentKey {
-        ContentKey(Sha256::digest(bytes).into())
-    }
-
-    /// Lower-case hexadecimal, 64 characters.
-    pub fn to_hex(&self) -> String {
-        self.0.iter().map(|b| format!("{b:02x}")).collect()
-    }
-}
-
-impl fmt::Display for ContentKey {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(&self.to_hex())
-    }
-}
-
-impl fmt::Debug for ContentKey {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "ContentKey({})", self.to_hex())
-    }
-}
+pub type ContentKey = Digest;
 
 /// An entry's content, read once: its key, and what decodes or renders to its map (so a file
 /// is read once even when its light maps are not cached).

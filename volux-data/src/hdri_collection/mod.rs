@@ -17,7 +17,7 @@
 
 use std::path::PathBuf;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use volux_envmap::EnvMapError;
 
 mod builtin;
@@ -79,7 +79,7 @@ pub struct HdriEntry {
 /// downloads; [`ProceduralRanges`] for the ranges); an unknown key is an error naming it. Relative folders are taken as given
 /// (relative to the working directory); a config loader that wants them relative to its file
 /// joins them first.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct HdriCollectionConfig {
     /// Include the eight embedded maps.

@@ -5,7 +5,7 @@
 
 use std::f64::consts::TAU;
 
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 use volux_envmap::{EnvMap, EnvMapError};
 
 use super::ranges::{OvercastRanges, SkyRanges, StudioRanges};

@@ -2,12 +2,12 @@
 //! optional, and the defaults are the ranges the collection has always used, so a config
 //! without the table draws exactly the same environments (same content keys, same caches).
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use super::HdriError;
 
 /// `[data.lighting.ranges]`: one table per procedural kind.
-#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ProceduralRanges {
     pub sky: SkyRanges,
@@ -16,7 +16,7 @@ pub struct ProceduralRanges {
 }
 
 /// `[data.lighting.ranges.sky]`: sun and sky. The azimuth is always uniform over the circle.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SkyRanges {
     /// Sun elevation above the horizon, degrees, uniform (default 3 to 70; -10 to 90 allowed).
@@ -42,7 +42,7 @@ impl Default for SkyRanges {
 }
 
 /// `[data.lighting.ranges.overcast]`: CIE overcast skies.
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct OvercastRanges {
     /// Zenith radiance, log-uniform (default 0.6 to 2.5: an upward surface receives 1.5 to 6).
@@ -57,7 +57,7 @@ impl Default for OvercastRanges {
 
 /// `[data.lighting.ranges.studio]`: studios. Where the key, fill and rim lights stand, their
 /// shares of the key's irradiance and their tints are fixed (docs/data-hdri.md).
-#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct StudioRanges {
     /// Number of lights, uniform over the integers (default 1 to 3: key, fill, rim).

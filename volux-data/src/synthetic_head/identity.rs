@@ -4,7 +4,7 @@
 //! 30 cm); colours are linear albedo. Every parameter is drawn uniformly from a range that keeps
 //! the parts attached and the face plausible; the ranges are in [`HeadIdentity::from_seed`].
 
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 /// Shape and appearance of one synthetic head.
 #[derive(Clone, Debug, PartialEq)]

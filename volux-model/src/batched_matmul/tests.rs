@@ -6,7 +6,7 @@ use burn::tensor::{Device, TensorData};
 use super::*;
 use crate::backend::to_f32_vec;
 use crate::test_support::normals;
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 fn tensor(values: &[f32], shape: [usize; 3], device: &Device) -> Tensor<3> {
     Tensor::from_data(TensorData::new(values.to_vec(), shape), device)

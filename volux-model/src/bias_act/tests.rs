@@ -1,7 +1,7 @@
 use std::f64::consts::SQRT_2;
 
 use burn::tensor::{Device, TensorData};
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 use super::*;
 use crate::backend::to_f32_vec;

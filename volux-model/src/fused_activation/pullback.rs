@@ -268,7 +268,7 @@ mod tests {
     use crate::backend::to_f32_vec;
     use crate::neiif::SMOOTH_GAIN;
     use crate::test_support::normals;
-    use volux_envmap::report::SplitMix64;
+    use volux_envmap::random::SplitMix64;
 
     fn tensor<const D: usize>(values: &[f64], shape: [usize; D], device: &Device) -> Tensor<D> {
         let v: Vec<f32> = values.iter().map(|x| *x as f32).collect();

@@ -7,7 +7,7 @@ use super::*;
 use crate::backend::to_f32_vec;
 use crate::flex_extension::simd_cap;
 use crate::test_support::normals;
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 fn tensor<const D: usize>(values: &[f64], shape: [usize; D], device: &Device) -> Tensor<D> {
     let v: Vec<f32> = values.iter().map(|x| *x as f32).collect();

@@ -1,13 +1,14 @@
 use burn::tensor::{Device, Distribution, TensorData};
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 use super::*;
 use crate::analytic::SoftSphere;
 use crate::backend::to_f32_vec;
-use crate::neiif::{FieldOutput, FieldWants, NeiifConfig};
+use crate::field::{Field, FieldOutput, FieldWants};
+use crate::neiif::{LatentField, NeiifConfig};
 use crate::ray_sampling::camera_ray_batch;
 use crate::test_support::{Scaled, lighting, wave_light_maps};
-use crate::volume_rendering::{LatentField, RenderWants, render};
+use crate::volume_rendering::{RenderWants, render};
 
 fn sphere(softness: f64, peak: f64) -> SoftSphere {
     SoftSphere {
@@ -221,7 +222,7 @@ fn empty_rays_and_an_empty_batch_stay_finite() {
     assert!(g.is_finite(), "{g}");
 }
 
-fn light_one(device: &Device) -> crate::volume_rendering::Lighting {
+fn light_one(device: &Device) -> crate::light_lookup::Lighting {
     lighting(&[wave_light_maps(4, 1.0)], &[0.3f32], device)
 }
 

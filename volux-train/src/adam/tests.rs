@@ -1,6 +1,6 @@
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, TensorData};
-use volux_envmap::report::SplitMix64;
+use volux_envmap::random::SplitMix64;
 
 use super::*;
 
@@ -11,7 +11,7 @@ fn values(rng: &mut SplitMix64, n: usize, scale: f64) -> Vec<f32> {
 }
 
 fn read(t: Tensor<2>) -> Vec<f32> {
-    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
+    volux_model::backend::to_f32_vec(t)
 }
 
 /// Five steps of both optimizers on the same parameter and gradients, with betas that
