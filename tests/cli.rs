@@ -584,9 +584,9 @@ fn train_resume_and_sample_end_to_end() {
         "{}",
         text(&o)
     );
-    let bad = volux(&["eval", "--checkpoint", run_s, "--yaw-rad", "0"]);
+    let bad = volux(&["eval", "--checkpoint", run_s, "--yaw", "0"]);
     assert!(
-        !bad.status.success() && text(&bad).contains("--yaw-rad 0"),
+        !bad.status.success() && text(&bad).contains("--yaw 0"),
         "{}",
         text(&bad)
     );

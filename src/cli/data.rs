@@ -14,6 +14,7 @@ use volux_data::pose_distribution::PoseDistribution;
 use volux_data::synthetic_head::{self, RenderSettings, SyntheticHead};
 use volux_envmap::random::SplitMix64;
 use volux_envmap::{LightMap, PreconvolveOptions, io, preconvolve};
+use volux_model::pose::Pose;
 
 #[derive(Debug, Subcommand)]
 pub enum DataCommand {
@@ -177,7 +178,7 @@ fn heads(args: HeadsArgs) -> anyhow::Result<()> {
     for (row, &seed) in seeds.iter().enumerate() {
         let pose = match pose_rng.as_mut() {
             Some(rng) => PoseDistribution::default().sample(rng),
-            None => (0.0, 0.0),
+            None => Pose::FRONTAL,
         };
         let start = Instant::now();
         let head = SyntheticHead::from_seed(seed);

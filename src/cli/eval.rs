@@ -28,14 +28,11 @@ pub struct EvalArgs {
     /// Seed of the first latent; the others follow.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Side-view yaws in radians, compared with the frontal view (comma-separated).
-    #[arg(
-        long,
-        value_delimiter = ',',
-        allow_hyphen_values = true,
-        default_value = "-0.5,-0.25,0.25,0.5"
-    )]
-    pub yaw_rad: Vec<f64>,
+    /// Side-view camera yaws in degrees, compared with the frontal view (comma-separated).
+    /// Default: -28.65, -14.32, 14.32 and 28.65 degrees (+-0.25 and +-0.5 rad, the views the
+    /// documented tables use).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub yaw: Vec<f64>,
     /// Environment maps (EXR or HDR) for the relighting measurement; the first also lights the
     /// multi-view one. Default: the shipped sunrise, studio and forest maps.
     #[arg(long)]
@@ -65,11 +62,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         bail!("--tolerance {} must be positive", args.tolerance);
     }
     if let Some(y) = args
-        .yaw_rad
+        .yaw
         .iter()
-        .find(|y| !y.is_finite() || **y == 0.0 || y.abs() > 1.5)
+        .find(|y| !y.is_finite() || **y == 0.0 || y.abs() > 85.0)
     {
-        bail!("--yaw-rad {y}: side views need a non-zero yaw within [-1.5, 1.5] radians");
+        bail!("--yaw {y}: side views need a non-zero yaw within [-85, 85] degrees");
     }
     let trained = load_for_sampling(&args.checkpoint, args.backend)?;
     let (state, dir) = (&trained.state, &trained.origin);
@@ -82,7 +79,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let mut options = EvalOptions::new(environments(&args.hdri, &DEFAULT_ENVIRONMENTS)?);
     options.samples = args.samples;
     options.first_seed = args.seed;
-    options.yaws = args.yaw_rad.clone();
+    if !args.yaw.is_empty() {
+        options.yaws = args.yaw.iter().map(|y| y.to_radians()).collect();
+    }
     options.tolerance = args.tolerance;
     options.batch = args.batch;
     let evaluation = evaluate(

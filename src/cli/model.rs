@@ -13,6 +13,7 @@ use volux_model::backend::BackendKind;
 use volux_model::generator::{GeneratorConfig, GeneratorWants};
 use volux_model::light_lookup::LightMapBatch;
 use volux_model::light_lookup::Lighting;
+use volux_model::pose::Pose;
 use volux_model::presets::{self, DiscriminatorRole};
 use volux_model::sampling_report::{self, DEFAULT_LAYOUTS, ProposalLayout, SamplingSettings};
 
@@ -215,8 +216,8 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
     let config = args.preset.config();
     let generator = config.init(&device)?;
     let (lighting, _) = lighting(args.hdri.as_deref(), args.batch, &device)?;
-    let poses: Vec<(f64, f64)> = (0..args.batch)
-        .map(|i| (0.3 * (i as f64 - 1.5), 0.1))
+    let poses: Vec<Pose> = (0..args.batch)
+        .map(|i| Pose::new(0.3 * (i as f64 - 1.5), 0.1))
         .collect();
     let rays = args.batch * config.volume_resolution.pow(2);
     let points = rays * (config.renderer.stratified + config.renderer.importance);

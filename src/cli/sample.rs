@@ -17,6 +17,7 @@ use volux_train::video::save_mp4;
 
 use super::data::parse_seeds;
 use super::environment::environments;
+use volux_model::pose::Pose;
 
 #[derive(Debug, Args)]
 pub struct SampleArgs {
@@ -180,8 +181,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
     let z_dim = config.generator().mapping.z_dim;
     let z = sampling::latents(&seeds, z_dim, device);
     let n = seeds.len();
-    let rad = f64::to_radians;
-    let first_pose = (rad(args.yaw[0]), rad(args.pitch[0]));
+    let first_pose = Pose::from_degrees(args.yaw[0], args.pitch[0]);
 
     for env in &envs {
         // Every layer, one row per seed.
@@ -211,10 +211,10 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
             exr.display()
         );
         // The relit image from every camera: one row per seed, one column per (yaw, pitch).
-        let views: Vec<(f64, f64)> = args
+        let views: Vec<Pose> = args
             .pitch
             .iter()
-            .flat_map(|&p| args.yaw.iter().map(move |&y| (rad(y), rad(p))))
+            .flat_map(|&p| args.yaw.iter().map(move |&y| Pose::from_degrees(y, p)))
             .collect();
         let mut sheet = ContactSheet::new(s, s, views.len(), n);
         for (column, &pose) in views.iter().enumerate() {
@@ -248,7 +248,7 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
         let frames = (0..args.rotate_camera)
             .map(|f| {
                 let phase = std::f64::consts::TAU * f as f64 / args.rotate_camera as f64;
-                let pose = (rad(30.0) * phase.sin(), first_pose.1);
+                let pose = Pose::new(30f64.to_radians() * phase.sin(), first_pose.pitch);
                 let l = sampling::render_under(g, z.clone(), &vec![pose; n], &env.lights, 0.0, bg)?;
                 Ok(strip(&l))
             })

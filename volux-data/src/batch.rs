@@ -15,6 +15,7 @@ use volux_envmap::LightMapSet;
 use volux_model::light_lookup::{Lighting, LightingTensorError, lighting_tensors};
 
 use crate::training_sample::{LightingDraw, TrainingSample};
+use volux_model::pose::Pose;
 
 /// One batch on the host, planar `[batch, channels, h, w]` arrays.
 #[derive(Clone, Debug, PartialEq)]
@@ -34,7 +35,7 @@ pub struct Batch {
     pub mask: Vec<f32>,
     pub diffuse: Vec<f32>,
     pub specular: Vec<f32>,
-    pub poses: Vec<(f64, f64)>,
+    pub poses: Vec<Pose>,
     /// The (environment, rotation) each example was lit with; the generator's samples of this
     /// step are lit with the same draws.
     pub draws: Vec<LightingDraw>,
@@ -245,7 +246,7 @@ mod tests {
         TrainingSample {
             side,
             factor: 2,
-            pose: (value as f64, 0.0),
+            pose: Pose::new(value as f64, 0.0),
             draw: LightingDraw { map: 1, yaw: 0.5 },
             photo: vec![[value, 0.0, 1.0]; n],
             relit: vec![[0.5; 3]; n],
@@ -300,7 +301,7 @@ mod tests {
         assert_eq!(&albedo[48..52], &[0.0, 1.0, 2.0, 3.0]);
         assert_eq!(
             (batch.index, batch.poses[1], batch.draws[0].map),
-            (7, (1.0, 0.0), 1)
+            (7, Pose::new(1.0, 0.0), 1)
         );
     }
 

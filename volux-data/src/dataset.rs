@@ -17,6 +17,7 @@ use volux_envmap::random::{self, SplitMix64};
 use volux_envmap::{LightMap, LightMapSet, PreconvolveOptions, Rgb};
 
 use crate::batch::Batch;
+use crate::config_file::{self, BoxError, ConfigFileError};
 use crate::folder_dataset::{FolderDataset, FolderError};
 use crate::hdri_collection::{HdriCollection, HdriCollectionConfig, HdriError};
 use crate::light_map_bank::LightMapBank;
@@ -154,32 +155,33 @@ impl DataConfig {
     /// Reads the `[data]` table of a config file (other tables belong to other commands),
     /// rejecting unknown keys; relative paths are taken relative to the file's folder.
     pub fn load(path: &Path) -> Result<(DataConfig, String), DataError> {
-        let text = std::fs::read_to_string(path).map_err(|e| DataError::File {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
+        let text = config_file::read(path)?;
         Self::from_text(&text, path)
     }
 
     /// [`DataConfig::load`] on the text of the file at `path` (read before, or stored).
     pub fn from_text(text: &str, path: &Path) -> Result<(DataConfig, String), DataError> {
-        let bad = |message: String| DataError::File {
-            path: path.to_path_buf(),
-            message,
-        };
-        let table: toml::Table = toml::from_str(text).map_err(|e| bad(e.to_string()))?;
+        let table: toml::Table = config_file::parse(text, path)?;
         let data = table
             .get("data")
-            .ok_or_else(|| bad("no [data] table".into()))?
+            .ok_or_else(|| ConfigFileError::MissingTable {
+                path: path.to_path_buf(),
+                table: "data",
+            })?
             .clone();
+        let in_table = |table: &'static str, source: BoxError| ConfigFileError::Table {
+            path: path.to_path_buf(),
+            table,
+            source,
+        };
         let mut config: DataConfig = data
             .clone()
             .try_into()
-            .map_err(|e: toml::de::Error| bad(format!("[data]: {e}")))?;
+            .map_err(|e: toml::de::Error| in_table("data", e.into()))?;
         config
             .lighting
             .validate()
-            .map_err(|e| bad(format!("[data.lighting]: {e}")))?;
+            .map_err(|e| in_table("data.lighting", e.into()))?;
         let base = path.parent().unwrap_or(Path::new(""));
         config.resolve_paths(base);
         // What examples depend on: the table as written, without the example cache's own
@@ -247,8 +249,8 @@ pub enum LightingError {
 pub enum DataError {
     #[error("data config: {0}")]
     Config(String),
-    #[error("{path}: {message}")]
-    File { path: PathBuf, message: String },
+    #[error(transparent)]
+    File(#[from] ConfigFileError),
     #[error("lighting")]
     Lighting(#[source] LightingError),
     #[error(transparent)]
@@ -513,7 +515,9 @@ fn fit(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use volux_envmap::error::chain;
     use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
+    use volux_model::pose::Pose;
 
     fn bank() -> Arc<Vec<LightMapSet>> {
         let maps = [
@@ -597,10 +601,10 @@ mod tests {
         // The fingerprinted text leaves out where things are cached.
         assert!(hashed.contains("seed") && !hashed.contains("examples") && !hashed.contains("lm"));
         write("[data]\nseed = \"x\"\n");
-        let err = DataConfig::load(&file).unwrap_err().to_string();
+        let err = chain(&DataConfig::load(&file).unwrap_err());
         assert!(err.contains("run.toml") && err.contains("seed"), "{err}");
         write("[data.lighting]\nskys = 3\n");
-        let err = DataConfig::load(&file).unwrap_err().to_string();
+        let err = chain(&DataConfig::load(&file).unwrap_err());
         assert!(err.contains("run.toml") && err.contains("skys"), "{err}");
         write("[model]\n");
         assert!(
@@ -670,7 +674,7 @@ mod tests {
             albedo: (0..n).map(|i| [i as f32 / 16.0; 3]).collect(),
             normals: vec![[0.6, 0.0, 0.8]; n],
             mask: (0..n).map(|i| if i % 4 < 2 { 1.0 } else { 0.0 }).collect(),
-            pose: (0.1, 0.0),
+            pose: Pose::new(0.1, 0.0),
         };
         let photo = vec![[0.5; 3]; n];
         let (small, small_photo) = fit(image.clone(), photo.clone(), 2).unwrap();
@@ -699,7 +703,7 @@ mod tests {
                 albedo: vec![[0.5; 3]; n],
                 normals: mask.iter().map(|&m| [0.0, 0.0, m]).collect(),
                 mask: mask.clone(),
-                pose: (0.0, 0.0),
+                pose: Pose::new(0.0, 0.0),
             },
             renormalised: 0,
             degenerate: 0,

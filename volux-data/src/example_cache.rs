@@ -26,6 +26,7 @@ use crate::batch::Batch;
 use crate::dataset::{DataError, Dataset};
 use crate::digest::{Digest, hex};
 use crate::training_sample::{LightingDraw, TrainingSample};
+use volux_model::pose::Pose;
 
 /// Bump when the examples a dataset makes change (rendering, relighting, layer conventions), so
 /// that caches built before are rebuilt.
@@ -84,6 +85,12 @@ pub enum CacheError {
     },
     #[error("{path}: {message}")]
     Corrupt { path: PathBuf, message: String },
+    #[error("{}: not a cache manifest", path.display())]
+    Manifest {
+        path: PathBuf,
+        #[source]
+        source: toml::de::Error,
+    },
     #[error("{path}: cannot write")]
     Write {
         path: PathBuf,
@@ -131,8 +138,8 @@ fn example_floats(side: usize, factor: usize) -> usize {
 
 fn encode_example(out: &mut Vec<u8>, s: &TrainingSample) {
     let mut put = |v: f32| out.extend_from_slice(&v.to_le_bytes());
-    put(s.pose.0 as f32);
-    put(s.pose.1 as f32);
+    put(s.pose.yaw as f32);
+    put(s.pose.pitch as f32);
     put(s.draw.map as f32);
     put(s.draw.yaw as f32);
     for layer in [&s.photo, &s.relit, &s.albedo_hi, &s.diffuse, &s.specular] {
@@ -150,7 +157,7 @@ fn decode_example(bytes: &[u8], side: usize, factor: usize) -> TrainingSample {
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
     let (hi, lo) = (side * side, (side / factor) * (side / factor));
-    let pose = (f64::from(floats[0]), f64::from(floats[1]));
+    let pose = Pose::new(f64::from(floats[0]), f64::from(floats[1]));
     let draw = LightingDraw {
         map: floats[2] as usize,
         yaw: f64::from(floats[3]),
@@ -193,10 +200,7 @@ fn read_manifest(dir: &Path) -> Result<Option<Manifest>, CacheError> {
     match fs::read_to_string(&path) {
         Ok(text) => toml::from_str(&text)
             .map(Some)
-            .map_err(|e| CacheError::Corrupt {
-                path,
-                message: e.to_string(),
-            }),
+            .map_err(|source| CacheError::Manifest { path, source }),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
         Err(e) => Err(io_error(&path)(e)),
     }
@@ -514,7 +518,7 @@ mod tests {
         for i in 0..5 {
             let (cached, live) = (cache.example(i).unwrap(), data.example(i).unwrap());
             // Poses and yaws are stored as f32.
-            assert!((cached.pose.0 - live.pose.0).abs() < 1e-6);
+            assert!((cached.pose.yaw - live.pose.yaw).abs() < 1e-6);
             assert!((cached.draw.yaw - live.draw.yaw).abs() < 1e-6);
             assert_eq!(cached.draw.map, live.draw.map);
             assert_eq!(

@@ -110,7 +110,7 @@ struct SampleFiles {
     albedo: PathBuf,
     normals: PathBuf,
     mask: Option<PathBuf>,
-    pose: (f64, f64),
+    pose: Pose,
 }
 
 /// A folder dataset, listed and checked but not decoded (module docs: the layout).
@@ -235,7 +235,7 @@ impl FolderDataset {
                 albedo: albedo[&stem].clone(),
                 normals: normals[&stem].clone(),
                 mask: masks.get(&stem).cloned(),
-                pose: poses.as_ref().map_or((0.0, 0.0), |p| p[&stem]),
+                pose: poses.as_ref().map_or(Pose::new(0.0, 0.0), |p| p[&stem]),
                 stem,
                 photo,
             })
@@ -273,8 +273,8 @@ impl FolderDataset {
         self.entries.iter().map(|e| e.stem.as_str())
     }
 
-    /// Camera pose `(yaw, pitch)` of sample `i`, radians. Panics if `i >= len()`.
-    pub fn pose(&self, i: usize) -> (f64, f64) {
+    /// Camera pose of sample `i`. Panics if `i >= len()`.
+    pub fn pose(&self, i: usize) -> Pose {
         self.entries[i].pose
     }
 
@@ -513,6 +513,7 @@ mod write;
 pub use error::FolderError;
 use error::name_list;
 use poses::read_poses;
+use volux_model::pose::Pose;
 pub use write::write_dataset;
 
 #[cfg(test)]

@@ -20,13 +20,15 @@
 //!   index; [`example_cache`]: examples rendered once into a sharded on-disk cache;
 //!   [`examples`]: what training reads, live or from a cache that matches its config;
 //!   [`batch`]: batches as Burn tensors and a prefetching loader;
-//! - [`pose_distribution`], [`contact_sheet`]: camera poses, preview grids; [`digest`]:
+//! - [`pose_distribution`], [`contact_sheet`]: camera poses, preview grids; [`config_file`]:
+//!   why a TOML config cannot be used, naming the file; [`digest`]:
 //!   SHA-256 keys and their hex form.
 //!
 //! The dataset camera is the model's (`volux_model::ray_sampling`), so that pseudo ground
 //! truth and generated images share one set of conventions.
 
 pub mod batch;
+pub mod config_file;
 pub mod contact_sheet;
 pub mod dataset;
 pub mod digest;

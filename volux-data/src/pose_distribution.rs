@@ -3,6 +3,7 @@
 //! deviations so that no draw looks at the back of the head.
 
 use volux_envmap::random::SplitMix64;
+use volux_model::pose::Pose;
 
 /// Gaussian yaw and pitch, radians.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Deserialize, serde::Serialize)]
@@ -29,9 +30,9 @@ impl Default for PoseDistribution {
 const TRUNCATION: f64 = 3.0;
 
 impl PoseDistribution {
-    /// One `(yaw, pitch)` draw.
-    pub fn sample(&self, rng: &mut SplitMix64) -> (f64, f64) {
-        (
+    /// One draw.
+    pub fn sample(&self, rng: &mut SplitMix64) -> Pose {
+        Pose::new(
             self.yaw_mean + self.yaw_sd * truncated_normal(rng),
             self.pitch_mean + self.pitch_sd * truncated_normal(rng),
         )
@@ -85,11 +86,11 @@ mod tests {
         };
         let mut rng = SplitMix64::new(5);
         let n = 40_000;
-        let draws: Vec<(f64, f64)> = (0..n).map(|_| dist.sample(&mut rng)).collect();
-        let mean = |f: &dyn Fn(&(f64, f64)) -> f64| draws.iter().map(f).sum::<f64>() / n as f64;
-        let (my, mp) = (mean(&|d| d.0), mean(&|d| d.1));
-        let sy = mean(&|d| (d.0 - my).powi(2)).sqrt();
-        let sp = mean(&|d| (d.1 - mp).powi(2)).sqrt();
+        let draws: Vec<Pose> = (0..n).map(|_| dist.sample(&mut rng)).collect();
+        let mean = |f: &dyn Fn(&Pose) -> f64| draws.iter().map(f).sum::<f64>() / n as f64;
+        let (my, mp) = (mean(&|d| d.yaw), mean(&|d| d.pitch));
+        let sy = mean(&|d| (d.yaw - my).powi(2)).sqrt();
+        let sp = mean(&|d| (d.pitch - mp).powi(2)).sqrt();
         assert!(
             (my - 0.1).abs() < 0.01 && mp.abs() < 0.005,
             "means {my} {mp}"
@@ -97,7 +98,7 @@ mod tests {
         // Truncation at 3 sd removes 0.27% of the mass and shrinks the sd by about 1.4%.
         assert!((sy / 0.3 - 0.986).abs() < 0.015, "yaw sd {sy}");
         assert!((sp / 0.155 - 0.986).abs() < 0.015, "pitch sd {sp}");
-        assert!(draws.iter().all(|d| (d.0 - 0.1).abs() <= 0.9 + 1e-12));
+        assert!(draws.iter().all(|d| (d.yaw - 0.1).abs() <= 0.9 + 1e-12));
         assert!(
             PoseDistribution {
                 pitch_sd: -1.0,

@@ -11,6 +11,7 @@
 use volux_envmap::direction::{self, Dir};
 use volux_envmap::io::tonemap_pixel;
 use volux_envmap::{LightMap, Rgb};
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::{CameraConfig, camera_basis, camera_rays};
 
 /// Specular blend weights for exponents 1, 16, 32, 64 when a dataset does not set its own:
@@ -31,8 +32,8 @@ pub struct IntrinsicImage {
     pub normals: Vec<[f32; 3]>,
     /// Foreground coverage in [0, 1].
     pub mask: Vec<f32>,
-    /// Camera pose `(yaw, pitch)`, radians.
-    pub pose: (f64, f64),
+    /// Camera pose.
+    pub pose: Pose,
 }
 
 /// The lighting layers of one (HDRI, yaw) draw.
@@ -195,9 +196,8 @@ pub fn relight_weighted(
             all
         }
     };
-    let (yaw, pitch) = image.pose;
-    let [right, up, back] = camera_basis(camera, yaw, pitch);
-    let (_, dirs) = camera_rays(camera, yaw, pitch, image.width, image.height);
+    let [right, up, back] = camera_basis(camera, image.pose);
+    let (_, dirs) = camera_rays(camera, image.pose, image.width, image.height);
     let n_pixels = image.width * image.height;
     let mut out = RelitLayers {
         diffuse: Vec::with_capacity(n_pixels),
@@ -250,10 +250,10 @@ mod tests {
     use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
 
     /// A sphere of radius 0.3 seen at `pose`: camera-space normals and mask by ray casting.
-    fn sphere_image(side: usize, pose: (f64, f64), albedo: Rgb) -> IntrinsicImage {
+    fn sphere_image(side: usize, pose: Pose, albedo: Rgb) -> IntrinsicImage {
         let camera = CameraConfig::new();
-        let [right, up, back] = camera_basis(&camera, pose.0, pose.1);
-        let (origins, dirs) = camera_rays(&camera, pose.0, pose.1, side, side);
+        let [right, up, back] = camera_basis(&camera, pose);
+        let (origins, dirs) = camera_rays(&camera, pose, side, side);
         let mut normals = Vec::new();
         let mut mask = Vec::new();
         for (o, d) in origins.iter().zip(&dirs) {
@@ -308,7 +308,7 @@ mod tests {
         let set = preconvolve(&map, &PreconvolveOptions::default()).unwrap();
         let lights: Vec<&LightMap> = set.maps().iter().collect();
         let weights = [0.1, 0.3, 0.2, 0.1];
-        let pose = (0.35, -0.1);
+        let pose = Pose::new(0.35, -0.1);
         let env_yaw = 1.3;
         let image = sphere_image(16, pose, [0.6, 0.4, 0.3]);
         let out = relight(&image, &lights, &weights, env_yaw, &camera, [0.0; 3]).unwrap();
@@ -317,8 +317,8 @@ mod tests {
             .iter()
             .map(|&n| Reference::new(&map, n))
             .collect();
-        let [right, up, back] = camera_basis(&camera, pose.0, pose.1);
-        let (_, dirs) = camera_rays(&camera, pose.0, pose.1, 16, 16);
+        let [right, up, back] = camera_basis(&camera, pose);
+        let (_, dirs) = camera_rays(&camera, pose, 16, 16);
         let mut checked = 0;
         for i in (0..256).filter(|&i| image.mask[i] > 0.0).step_by(7) {
             let nc = image.normals[i].map(f64::from);
@@ -362,7 +362,7 @@ mod tests {
             .map(|&n| LightMap::new(n, 16, 8, vec![c; 128]))
             .collect();
         let refs: Vec<&LightMap> = lights.iter().collect();
-        let image = sphere_image(12, (0.2, 0.1), [0.5; 3]);
+        let image = sphere_image(12, Pose::new(0.2, 0.1), [0.5; 3]);
         let weights = DEFAULT_SPECULAR_WEIGHTS;
         let out = relight(&image, &refs, &weights, 0.4, &camera, [0.2; 3]).unwrap();
         let w_sum: f32 = weights.iter().sum();
@@ -402,7 +402,7 @@ mod tests {
             .map(|&n| LightMap::new(n, 16, 8, vec![[1.0; 3]; 128]))
             .collect();
         let refs: Vec<&LightMap> = lights.iter().collect();
-        let mut image = sphere_image(8, (0.0, 0.0), [0.5; 3]);
+        let mut image = sphere_image(8, Pose::new(0.0, 0.0), [0.5; 3]);
         let ok = relight(&image, &refs, &[0.1, 0.1], 0.0, &camera, [0.0; 3]).unwrap();
         assert_eq!((ok.renormalised, ok.degenerate), (0, 0));
         assert_eq!(

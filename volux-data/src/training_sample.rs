@@ -18,6 +18,7 @@ use volux_envmap::{LightMap, Rgb};
 
 use crate::relighting::{IntrinsicImage, RelightError, SpecularWeights, relight_weighted};
 use crate::synthetic_head::{self, HeadRender, SyntheticError, SyntheticHead};
+use volux_model::pose::Pose;
 
 /// Which light maps, rotated by how much, lit a sample.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -68,7 +69,7 @@ pub enum Intrinsics<'a> {
 pub struct TrainingSample {
     pub side: usize,
     pub factor: usize,
-    pub pose: (f64, f64),
+    pub pose: Pose,
     pub draw: LightingDraw,
     pub photo: Vec<Rgb>,
     pub relit: Vec<Rgb>,
@@ -252,7 +253,8 @@ mod tests {
     #[test]
     fn the_same_head_under_two_environments_keeps_its_intrinsic_layers() {
         let head = SyntheticHead::from_seed(4);
-        let render = synthetic_head::render(&head, (0.1, 0.0), &RenderSettings::square(32));
+        let render =
+            synthetic_head::render(&head, Pose::new(0.1, 0.0), &RenderSettings::square(32));
         let sun = crate::procedural_sky::SunSky {
             elevation: 0.5,
             azimuth: 1.0,
@@ -304,7 +306,7 @@ mod tests {
             albedo: vec![[0.5; 3]; 36],
             normals: vec![[0.0, 0.0, 1.0]; 36],
             mask: vec![1.0; 36],
-            pose: (0.0, 0.0),
+            pose: Pose::new(0.0, 0.0),
         };
         let set = preconvolve(
             &EnvMap::constant(8, [1.0; 3]).unwrap(),

@@ -3,6 +3,9 @@
 
 use std::path::PathBuf;
 
+/// The cause an image codec gives (the OpenEXR and `image` crates' errors).
+pub type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
 /// What went wrong reading, validating, writing or convolving an environment map.
 #[derive(Debug, thiserror::Error)]
 pub enum EnvMapError {
@@ -20,18 +23,32 @@ pub enum EnvMapError {
     )]
     UnsupportedFormat { path: PathBuf },
     /// The decoder rejected the file (truncated, corrupt, or a variant it does not support).
-    #[error("{}: cannot decode {format} image: {message}", path.display())]
+    #[error("{}: cannot decode {format} image", path.display())]
     Decode {
         path: PathBuf,
         format: &'static str,
-        message: String,
+        #[source]
+        source: BoxError,
+    },
+    /// The decoder refused to allocate what the file's header asks for.
+    #[error(
+        "{}: the {format} image is larger than volux reads (at most {max} texels)",
+        path.display()
+    )]
+    DecodeLimit {
+        path: PathBuf,
+        format: &'static str,
+        max: usize,
+        #[source]
+        source: BoxError,
     },
     /// The encoder failed.
-    #[error("{}: cannot encode {format} image: {message}", path.display())]
+    #[error("{}: cannot encode {format} image", path.display())]
     Encode {
         path: PathBuf,
         format: &'static str,
-        message: String,
+        #[source]
+        source: BoxError,
     },
     /// The image has no texels.
     #[error("{origin}: empty image ({width}x{height})")]

@@ -14,7 +14,7 @@ use std::path::Path;
 
 use crate::durable::write_atomically;
 use crate::envmap::{EnvMap, Rgb, luminance};
-use crate::error::EnvMapError;
+use crate::error::{BoxError, EnvMapError};
 
 /// File formats by extension.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -124,7 +124,7 @@ fn decode_exr(bytes: &[u8], path: &Path) -> Result<RawImage, EnvMapError> {
     let decode_err = |e: exr::error::Error| EnvMapError::Decode {
         path: path.to_path_buf(),
         format: "OpenEXR",
-        message: e.to_string(),
+        source: e.into(),
     };
     let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), true)
         .map_err(decode_err)?;
@@ -170,23 +170,26 @@ fn decode_dynamic<R: std::io::BufRead + std::io::Seek>(
     } else {
         "PNG/JPEG"
     };
-    let decode_err = |message: String| EnvMapError::Decode {
+    let decode_err = |source: BoxError| EnvMapError::Decode {
         path: path.to_path_buf(),
         format,
-        message,
+        source,
     };
     let mut reader = reader
         .with_guessed_format()
-        .map_err(|e| decode_err(e.to_string()))?;
+        .map_err(|e| decode_err(e.into()))?;
     // The decoders check these against the header before allocating.
     let mut limits = image::Limits::default();
     limits.max_alloc = Some(MAX_TEXELS as u64 * 16);
     reader.limits(limits);
     reader.decode().map_err(|e| match e {
-        image::ImageError::Limits(_) => {
-            decode_err(format!("{e} (volux reads at most {MAX_TEXELS} texels)"))
-        }
-        e => decode_err(e.to_string()),
+        image::ImageError::Limits(_) => EnvMapError::DecodeLimit {
+            path: path.to_path_buf(),
+            format,
+            max: MAX_TEXELS,
+            source: e.into(),
+        },
+        e => decode_err(e.into()),
     })
 }
 
@@ -299,7 +302,7 @@ pub fn save_exr(
             .map_err(|e| EnvMapError::Encode {
                 path: path.to_path_buf(),
                 format: "OpenEXR",
-                message: e.to_string(),
+                source: e.into(),
             })
     })
 }
@@ -318,10 +321,10 @@ pub fn save_png(
 ) -> Result<(), EnvMapError> {
     assert_eq!(pixels.len(), width * height, "pixel buffer size");
     write_atomically(path, |tmp| {
-        let encode_err = |message: String| EnvMapError::Encode {
+        let encode_err = |e: image::ImageError| EnvMapError::Encode {
             path: path.to_path_buf(),
             format: "PNG",
-            message,
+            source: e.into(),
         };
         let file = fs::File::create(tmp).map_err(|source| EnvMapError::Io {
             path: path.to_path_buf(),
@@ -336,7 +339,7 @@ pub fn save_png(
             height as u32,
             image::ExtendedColorType::Rgb8,
         )
-        .map_err(|e| encode_err(e.to_string()))?;
+        .map_err(encode_err)?;
         out.flush().map_err(|source| EnvMapError::Io {
             path: path.to_path_buf(),
             source,

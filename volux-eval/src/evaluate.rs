@@ -24,6 +24,7 @@ use crate::reprojection::{DEFAULT_TOLERANCE, Reprojection, reproject};
 use crate::sample_quality::sample_quality;
 use crate::swd::{SwdError, SwdOptions};
 use crate::views::{Rendered, render_model, render_synthetic};
+use volux_model::pose::Pose;
 
 /// An environment's light maps under a short name.
 pub struct Environment {
@@ -103,7 +104,7 @@ pub(crate) trait Source {
     fn render(
         &self,
         chunk: &[u64],
-        pose: (f64, f64),
+        pose: Pose,
         env: &LightMapSet,
         env_yaw: f64,
     ) -> Result<Vec<Rendered>, EvalError>;
@@ -120,7 +121,7 @@ impl Source for Model<'_> {
     fn render(
         &self,
         chunk: &[u64],
-        pose: (f64, f64),
+        pose: Pose,
         env: &LightMapSet,
         env_yaw: f64,
     ) -> Result<Vec<Rendered>, EvalError> {
@@ -148,7 +149,7 @@ impl Source for Heads {
     fn render(
         &self,
         chunk: &[u64],
-        pose: (f64, f64),
+        pose: Pose,
         env: &LightMapSet,
         env_yaw: f64,
     ) -> Result<Vec<Rendered>, EvalError> {
@@ -203,7 +204,7 @@ fn measure(
     let seeds: Vec<u64> = (0..options.samples as u64)
         .map(|i| options.first_seed + i)
         .collect();
-    let frontal = (0.0, 0.0);
+    let frontal = Pose::FRONTAL;
     for (c, chunk) in seeds.chunks(options.batch).enumerate() {
         tracing::info!(
             "{what}: samples {}..{} of {}",
@@ -234,7 +235,7 @@ fn measure(
         let mut sides: Vec<Vec<Rendered>> = Vec::with_capacity(options.yaws.len());
         let mut errors: Vec<Vec<Vec<Option<f32>>>> = vec![Vec::new(); chunk.len()];
         for (j, &yaw) in options.yaws.iter().enumerate() {
-            let side = source.render(chunk, (yaw, 0.0), &envs[0].lights, 0.0)?;
+            let side = source.render(chunk, Pose::new(yaw, 0.0), &envs[0].lights, 0.0)?;
             for (i, (f, s)) in front.iter().zip(&side).enumerate() {
                 let r = reproject(f, s, camera, options.tolerance);
                 out.multiview[j].merge(&r);
@@ -335,7 +336,12 @@ fn rotating_light_figure(
     let mut columns = Vec::with_capacity(options.light_steps);
     for k in 0..options.light_steps {
         let yaw = std::f64::consts::TAU * k as f64 / options.light_steps as f64;
-        columns.push(source.render(seeds, (0.0, 0.0), &options.environments[0].lights, yaw)?);
+        columns.push(source.render(
+            seeds,
+            Pose::new(0.0, 0.0),
+            &options.environments[0].lights,
+            yaw,
+        )?);
     }
     let s = columns[0][0].side;
     let mut sheet = ContactSheet::new(s, s, options.light_steps, seeds.len());

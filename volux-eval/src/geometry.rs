@@ -10,17 +10,18 @@ use volux_model::ray_sampling::{CameraConfig, camera_basis};
 use crate::image::{mean, median};
 use crate::reprojection::{FOREGROUND, unproject};
 use crate::views::Rendered;
+use volux_model::pose::Pose;
 
 /// Camera-space unit normals of a depth map's surface at interior pixels (`None` elsewhere).
 pub fn depth_normals(
     camera: &CameraConfig,
-    pose: (f64, f64),
+    pose: Pose,
     side: usize,
     depth: &[f32],
     mask: &[f32],
 ) -> Vec<Option<[f64; 3]>> {
     let points = unproject(camera, pose, side, depth);
-    let [right, up, back] = camera_basis(camera, pose.0, pose.1);
+    let [right, up, back] = camera_basis(camera, pose);
     let inside = |x: usize, y: usize| mask[y * side + x] >= FOREGROUND;
     (0..side * side)
         .map(|i| {
@@ -61,7 +62,7 @@ pub fn depth_normals(
 /// the accumulated normal is not degenerate.
 pub fn normal_angles(
     camera: &CameraConfig,
-    pose: (f64, f64),
+    pose: Pose,
     side: usize,
     normals: &[[f32; 3]],
     depth: &[f32],
@@ -126,10 +127,10 @@ mod tests {
     use volux_model::ray_sampling::camera_rays;
 
     /// Depth, normals and mask of a sphere of radius `r` at the origin, seen at `pose`.
-    fn sphere(r: f64, pose: (f64, f64), side: usize) -> (Vec<f32>, Vec<[f32; 3]>, Vec<f32>) {
+    fn sphere(r: f64, pose: Pose, side: usize) -> (Vec<f32>, Vec<[f32; 3]>, Vec<f32>) {
         let camera = CameraConfig::new();
-        let (origins, dirs) = camera_rays(&camera, pose.0, pose.1, side, side);
-        let [right, up, back] = camera_basis(&camera, pose.0, pose.1);
+        let (origins, dirs) = camera_rays(&camera, pose, side, side);
+        let [right, up, back] = camera_basis(&camera, pose);
         let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
         let (mut depth, mut normals, mut mask) = (vec![], vec![], vec![]);
         for (o, d) in origins.iter().zip(&dirs) {
@@ -154,7 +155,7 @@ mod tests {
     #[test]
     fn a_spheres_depth_gives_its_normals() {
         let camera = CameraConfig::new();
-        for pose in [(0.0, 0.0), (0.3, 0.1)] {
+        for pose in [Pose::new(0.0, 0.0), Pose::new(0.3, 0.1)] {
             let (depth, normals, mask) = sphere(0.4, pose, 48);
             let angles = normal_angles(&camera, pose, 48, &normals, &depth, &mask);
             let score = GeometryScore::of(&angles);
@@ -168,12 +169,12 @@ mod tests {
     #[test]
     fn normals_that_disagree_with_the_depth_are_caught() {
         let camera = CameraConfig::new();
-        let (depth, _, mask) = sphere(0.4, (0.0, 0.0), 48);
+        let (depth, _, mask) = sphere(0.4, Pose::new(0.0, 0.0), 48);
         // Every normal facing the camera: a flat shape's normals on a round depth.
         let flat = vec![[0.0f32, 0.0, 1.0]; depth.len()];
         let score = GeometryScore::of(&normal_angles(
             &camera,
-            (0.0, 0.0),
+            Pose::new(0.0, 0.0),
             48,
             &flat,
             &depth,

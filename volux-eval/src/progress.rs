@@ -30,6 +30,7 @@ use crate::geometry::{GeometryScore, render_angles};
 use crate::reprojection::{DEFAULT_TOLERANCE, Reprojection, reproject};
 use crate::sample_quality::{DataSets, LAYERS, distances, fake_sets};
 use crate::swd::SwdOptions;
+use volux_model::pose::Pose;
 
 /// How much the light evaluation measures.
 #[derive(Clone, Debug, PartialEq)]
@@ -83,12 +84,12 @@ fn view_scores(
     let mut pairs = Reprojection::default();
     let mut angles = Vec::new();
     for chunk in seeds.chunks(options.batch) {
-        let front = source.render(chunk, (0.0, 0.0), lights, 0.0)?;
+        let front = source.render(chunk, Pose::FRONTAL, lights, 0.0)?;
         for f in &front {
             angles.extend(render_angles(camera, f));
         }
         for yaw in [-options.yaw, options.yaw] {
-            let side = source.render(chunk, (yaw, 0.0), lights, 0.0)?;
+            let side = source.render(chunk, Pose::new(yaw, 0.0), lights, 0.0)?;
             for (f, s) in front.iter().zip(&side) {
                 pairs.merge(&reproject(f, s, camera, options.tolerance));
             }

@@ -75,10 +75,11 @@ impl ShadingScore {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use volux_model::pose::Pose;
 
     fn view(albedo: f32, normal: f32, relit: f32, shaded: f32) -> Rendered {
         Rendered {
-            pose: (0.0, 0.0),
+            pose: Pose::new(0.0, 0.0),
             side: 2,
             albedo: vec![[albedo; 3]; 4],
             relit: vec![[relit; 3]; 4],

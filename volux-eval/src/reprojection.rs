@@ -16,6 +16,7 @@ use volux_model::ray_sampling::{CameraConfig, camera_basis, camera_position, cam
 
 use crate::image::{ErrorSums, bilinear, bilinear1, neighbourhood_min};
 use crate::views::Rendered;
+use volux_model::pose::Pose;
 
 /// Depth agreement in world units (the head spans about 1): about one volume pixel at the
 /// head's distance for the small model's 32x32 volume.
@@ -25,12 +26,12 @@ pub const DEFAULT_TOLERANCE: f64 = 0.03;
 /// `side x side` image at `pose`, and its distance from the camera; `None` behind it.
 pub fn project(
     camera: &CameraConfig,
-    pose: (f64, f64),
+    pose: Pose,
     side: usize,
     p: [f64; 3],
 ) -> Option<(f64, f64, f64)> {
-    let o = camera_position(camera, pose.0, pose.1);
-    let [right, up, back] = camera_basis(camera, pose.0, pose.1);
+    let o = camera_position(camera, pose);
+    let [right, up, back] = camera_basis(camera, pose);
     let v: [f64; 3] = std::array::from_fn(|k| p[k] - o[k]);
     let dot = |a: [f64; 3]| a[0] * v[0] + a[1] * v[1] + a[2] * v[2];
     let (xc, yc, zc) = (dot(right), dot(up), -dot(back));
@@ -45,13 +46,8 @@ pub fn project(
 }
 
 /// The world point behind every pixel of a `side x side` depth map at `pose`.
-pub fn unproject(
-    camera: &CameraConfig,
-    pose: (f64, f64),
-    side: usize,
-    depth: &[f32],
-) -> Vec<[f64; 3]> {
-    let (origins, dirs) = camera_rays(camera, pose.0, pose.1, side, side);
+pub fn unproject(camera: &CameraConfig, pose: Pose, side: usize, depth: &[f32]) -> Vec<[f64; 3]> {
+    let (origins, dirs) = camera_rays(camera, pose, side, side);
     origins
         .iter()
         .zip(&dirs)
@@ -155,7 +151,11 @@ mod tests {
     #[test]
     fn projecting_a_pixel_ray_gives_the_pixel_back() {
         let camera = CameraConfig::new();
-        for pose in [(0.0, 0.0), (0.4, -0.2), (-0.5, 0.15)] {
+        for pose in [
+            Pose::new(0.0, 0.0),
+            Pose::new(0.4, -0.2),
+            Pose::new(-0.5, 0.15),
+        ] {
             let side = 16;
             let depth: Vec<f32> = (0..side * side).map(|i| 2.3 + 0.003 * i as f32).collect();
             let points = unproject(&camera, pose, side, &depth);
@@ -167,6 +167,9 @@ mod tests {
             }
         }
         // Behind the camera: no projection.
-        assert_eq!(project(&camera, (0.0, 0.0), 8, [0.0, 0.0, 5.0]), None);
+        assert_eq!(
+            project(&camera, Pose::new(0.0, 0.0), 8, [0.0, 0.0, 5.0]),
+            None
+        );
     }
 }

@@ -19,6 +19,7 @@ use crate::evaluate::EvalError;
 use crate::report::SwdRow;
 use crate::swd::{ImageSet, Swd, SwdOptions, swd};
 use crate::views::render_model;
+use volux_model::pose::Pose;
 
 /// The compared layers, in the order of every `[ImageSet; 3]` here.
 pub const LAYERS: [&str; 3] = ["albedo", "normals", "relit"];
@@ -55,8 +56,8 @@ fn extend(sets: &mut [ImageSet; 3], batch: &Batch) {
 pub struct DataSets {
     /// The environments the draws index.
     pub lights: Arc<Vec<LightMapSet>>,
-    /// Per image of the first draw: its camera `(yaw, pitch)` and lighting.
-    pub poses: Vec<(f64, f64)>,
+    /// Per image of the first draw: its camera pose and lighting.
+    pub poses: Vec<Pose>,
     pub draws: Vec<LightingDraw>,
     /// The first draw's layers (the floor's left side).
     pub real: [ImageSet; 3],

@@ -9,6 +9,7 @@ use volux_envmap::io::srgb_to_linear;
 use volux_envmap::{LightMap, LightMapSet, Rgb};
 use volux_model::backend::to_f32_vec;
 use volux_model::generator::{Generator, GeneratorWants};
+use volux_model::pose::Pose;
 use volux_model::relighting::tonemap_srgb;
 use volux_model::upsampler::bilinear_upsample;
 use volux_train::sampling::SampleError;
@@ -16,8 +17,8 @@ use volux_train::sampling::SampleError;
 /// One image's layers, row-major from the top-left pixel.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Rendered {
-    /// Camera pose `(yaw, pitch)`, radians.
-    pub pose: (f64, f64),
+    /// Camera pose.
+    pub pose: Pose,
     /// Side of the output-resolution layers.
     pub side: usize,
     /// Linear albedo over the background's albedo.
@@ -66,7 +67,7 @@ fn scalars(t: Tensor<4>) -> Vec<Vec<f32>> {
 pub fn render_model(
     g: &Generator,
     z: Tensor<2>,
-    poses: &[(f64, f64)],
+    poses: &[Pose],
     lights: &[&LightMapSet],
     env_yaws: &[f64],
     background: Rgb,
@@ -126,7 +127,7 @@ pub fn render_model(
 /// is the physically shaded image itself.
 pub fn render_synthetic(
     head: &SyntheticHead,
-    pose: (f64, f64),
+    pose: Pose,
     side: usize,
     side_lo: usize,
     lights: &LightMapSet,

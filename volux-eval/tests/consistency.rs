@@ -7,6 +7,7 @@ use volux_eval::geometry::{GeometryScore, render_angles};
 use volux_eval::relighting_consistency::{invariance, relit_against_shaded};
 use volux_eval::reprojection::{DEFAULT_TOLERANCE, reproject};
 use volux_eval::views::{Rendered, render_synthetic};
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::CameraConfig;
 
 /// A sky with a warm key light above and to the right.
@@ -27,7 +28,7 @@ fn lights(key: [f64; 3]) -> LightMapSet {
 
 fn render(seed: u64, yaw: f64, l: &LightMapSet) -> Rendered {
     let head = SyntheticHead::from_seed(seed);
-    render_synthetic(&head, (yaw, 0.0), 64, 32, l, 0.0, [1.0, 1.0, 1.0]).unwrap()
+    render_synthetic(&head, Pose::new(yaw, 0.0), 64, 32, l, 0.0, [1.0, 1.0, 1.0]).unwrap()
 }
 
 #[test]

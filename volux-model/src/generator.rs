@@ -15,6 +15,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use crate::light_lookup::Lighting;
 use crate::mapping::{MappingNetwork, MappingNetworkConfig};
 use crate::neiif::{LatentField, Neiif, NeiifConfig};
+use crate::pose::Pose;
 use crate::profile::{self, Phase};
 use crate::ray_sampling::{CameraConfig, camera_basis, camera_ray_batch};
 use crate::relighting::{RelightingConfig, RelightingNet};
@@ -243,13 +244,13 @@ fn image(x: Tensor<3>, side: usize) -> Tensor<4> {
 fn to_camera_space(
     n: Tensor<3>,
     camera: &CameraConfig,
-    poses: &[(f64, f64)],
+    poses: &[Pose],
     device: &Device,
 ) -> Tensor<3> {
     let basis: Vec<f32> = poses
         .iter()
-        .flat_map(|&(yaw, pitch)| {
-            let [r, u, b] = camera_basis(camera, yaw, pitch);
+        .flat_map(|&pose| {
+            let [r, u, b] = camera_basis(camera, pose);
             // Columns are the axes: n [1, 3] x M [3, 3] = (n.r, n.u, n.b).
             (0..3).flat_map(move |k| [r[k] as f32, u[k] as f32, b[k] as f32])
         })
@@ -310,7 +311,7 @@ impl Generator {
         ))
     }
 
-    /// Generates `z: [batch, z_dim]` seen from `poses` (one `(yaw, pitch)` per element) under
+    /// Generates `z: [batch, z_dim]` seen from `poses` (one per element) under
     /// `lighting`, over a background colour (the dataset's), computing only what `wants` needs.
     /// `fade` holds the upsampler's fade-in weights (`None`: fully grown); `jitter` randomises
     /// ray samples (training).
@@ -318,7 +319,7 @@ impl Generator {
     pub fn forward(
         &self,
         z: Tensor<2>,
-        poses: &[(f64, f64)],
+        poses: &[Pose],
         lighting: Option<&Lighting>,
         background: [f32; 3],
         wants: GeneratorWants,
@@ -505,7 +506,7 @@ mod tests {
         let out = g
             .forward(
                 z,
-                &[(0.0, 0.0), (0.4, -0.1)],
+                &[Pose::new(0.0, 0.0), Pose::new(0.4, -0.1)],
                 Some(&light),
                 [0.0; 3],
                 GeneratorWants::ALL,
@@ -547,7 +548,7 @@ mod tests {
         let out = g
             .forward(
                 z,
-                &[(0.0, 0.0)],
+                &[Pose::new(0.0, 0.0)],
                 None,
                 [1.0; 3],
                 GeneratorWants::STAGE1,
@@ -575,7 +576,13 @@ mod tests {
         let z = Tensor::<2>::random([1, 512], Distribution::Normal(0.0, 1.0), &device);
         let w = g.mapping.forward(z);
         // 48 rays of the 64x64 image: its central row, and 16 rays more.
-        let (o, d) = camera_ray_batch(&config.renderer.camera, &[(0.2, 0.0)], 64, 64, &device);
+        let (o, d) = camera_ray_batch(
+            &config.renderer.camera,
+            &[Pose::new(0.2, 0.0)],
+            64,
+            64,
+            &device,
+        );
         let (o, d) = (o.narrow(1, 64 * 32, 48), d.narrow(1, 64 * 32, 48));
         let light = lighting(1, 1e5, &device);
         let r = g
@@ -630,7 +637,7 @@ mod tests {
         let err = g
             .forward(
                 z.clone(),
-                &[(0.0, 0.0)],
+                &[Pose::new(0.0, 0.0)],
                 None,
                 [0.0; 3],
                 GeneratorWants::ALL,
@@ -642,7 +649,7 @@ mod tests {
         let err = g
             .forward(
                 z,
-                &[(0.0, 0.0), (0.1, 0.0)],
+                &[Pose::new(0.0, 0.0), Pose::new(0.1, 0.0)],
                 None,
                 [0.0; 3],
                 GeneratorWants::STAGE1,
@@ -743,7 +750,10 @@ mod tests {
         let cam = to_f32_vec(to_camera_space(
             world,
             &camera,
-            &[(0.0, 0.0), (std::f64::consts::FRAC_PI_2, 0.0)],
+            &[
+                Pose::new(0.0, 0.0),
+                Pose::new(std::f64::consts::FRAC_PI_2, 0.0),
+            ],
             &device,
         ));
         // Frontal: world +z faces the camera. Yaw 90 degrees: the camera sits on +x.

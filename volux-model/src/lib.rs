@@ -9,6 +9,7 @@
 //!   generator and the discriminators together (`small`, `paper`).
 //! - Discriminators (section 3.4): [`equalized`] layers, StyleGAN2's [`blur`], the residual
 //!   [`discriminator`] with its explicit input gradient and the R1 penalty.
+//! - Cameras: [`pose`] (yaw and pitch on the orbit; the rays are [`ray_sampling`]'s).
 //! - Checks: [`backend`] (device selection and a self-check), [`analytic`] fields with known
 //!   answers, the samples-per-ray [`sampling_report`].
 //! - Performance: [`profile`] (named timing spans, no-ops unless a profiler runs) and
@@ -32,6 +33,7 @@ pub mod light_lookup;
 pub mod mapping;
 pub mod modulated;
 pub mod neiif;
+pub mod pose;
 pub mod positional_encoding;
 pub mod presets;
 pub mod profile;

@@ -1,7 +1,7 @@
 //! Camera rays and stratified samples along them (docs/conventions.md, "World and camera"; EG3D's set-up).
 //!
 //! A pinhole camera on a sphere of radius 2.7 looks at the origin with a vertical field of view
-//! of 18.84 degrees; rays run from `t = 2.25` to `t = 3.3`. Pose `(yaw, pitch)`: yaw 0, pitch 0
+//! of 18.84 degrees; rays run from `t = 2.25` to `t = 3.3`. A [`Pose`]: yaw 0, pitch 0
 //! sits at +z looking along -z (at the face), with +x to the right of the image and +y up;
 //! positive yaw turns the camera about +y (right-handed, towards +x), positive pitch raises it
 //! (it looks down). Pixel `(x, y)` counts from the top-left corner; rays go through pixel
@@ -10,6 +10,8 @@
 use burn::config::Config;
 use burn::tensor::{Device, Distribution, Tensor, TensorData};
 use volux_envmap::direction::normalize;
+
+use crate::pose::Pose;
 
 /// Camera intrinsics and ray bounds.
 #[derive(Config, Debug, PartialEq)]
@@ -29,8 +31,8 @@ pub struct CameraConfig {
 }
 
 /// Camera position for a pose.
-pub fn camera_position(config: &CameraConfig, yaw: f64, pitch: f64) -> [f64; 3] {
-    let r = config.radius;
+pub fn camera_position(config: &CameraConfig, pose: Pose) -> [f64; 3] {
+    let (r, Pose { yaw, pitch }) = (config.radius, pose);
     [
         r * yaw.sin() * pitch.cos(),
         r * pitch.sin(),
@@ -41,8 +43,8 @@ pub fn camera_position(config: &CameraConfig, yaw: f64, pitch: f64) -> [f64; 3] 
 /// The camera's axes in world space for a pose: `[right, up, back]` (image +x, image +y, and
 /// the direction from the head towards the camera). Camera-space coordinates of a world
 /// vector are its dot products with these, so a normal facing the camera is camera-space +z.
-pub fn camera_basis(config: &CameraConfig, yaw: f64, pitch: f64) -> [[f64; 3]; 3] {
-    let back = normalize(camera_position(config, yaw, pitch));
+pub fn camera_basis(config: &CameraConfig, pose: Pose) -> [[f64; 3]; 3] {
+    let back = normalize(camera_position(config, pose));
     let forward = back.map(|c| -c);
     let cross = |a: [f64; 3], b: [f64; 3]| {
         [
@@ -56,17 +58,16 @@ pub fn camera_basis(config: &CameraConfig, yaw: f64, pitch: f64) -> [[f64; 3]; 3
     [right, up, back]
 }
 
-/// Rays of a `width x height` image at pose `(yaw, pitch)`: origins and unit directions,
+/// Rays of a `width x height` image at `pose`: origins and unit directions,
 /// `[height * width, 3]` each, row-major from the top-left pixel. Built in f64 on the host.
 pub fn camera_rays(
     config: &CameraConfig,
-    yaw: f64,
-    pitch: f64,
+    pose: Pose,
     width: usize,
     height: usize,
 ) -> (Vec<[f64; 3]>, Vec<[f64; 3]>) {
-    let o = camera_position(config, yaw, pitch);
-    let [right, up, back] = camera_basis(config, yaw, pitch);
+    let o = camera_position(config, pose);
+    let [right, up, back] = camera_basis(config, pose);
     let forward = back.map(|c| -c);
     let tan = (config.fov_degrees.to_radians() / 2.0).tan();
     let aspect = width as f64 / height as f64;
@@ -87,7 +88,7 @@ pub fn camera_rays(
 /// `[poses, height * width, 3]` each (see [`camera_rays`]).
 pub fn camera_ray_batch(
     config: &CameraConfig,
-    poses: &[(f64, f64)],
+    poses: &[Pose],
     width: usize,
     height: usize,
     device: &Device,
@@ -95,8 +96,8 @@ pub fn camera_ray_batch(
     let r = width * height;
     let mut origins = Vec::with_capacity(poses.len() * r * 3);
     let mut dirs = Vec::with_capacity(poses.len() * r * 3);
-    for &(yaw, pitch) in poses {
-        let (o, d) = camera_rays(config, yaw, pitch, width, height);
+    for &pose in poses {
+        let (o, d) = camera_rays(config, pose, width, height);
         origins.extend(o.iter().flatten().map(|v| *v as f32));
         dirs.extend(d.iter().flatten().map(|v| *v as f32));
     }
@@ -291,13 +292,13 @@ mod tests {
     #[test]
     fn frontal_camera_looks_along_minus_z_with_x_right_and_y_up() {
         let cfg = CameraConfig::new();
-        let (o, d) = camera_rays(&cfg, 0.0, 0.0, 2, 2);
+        let (o, d) = camera_rays(&cfg, Pose::new(0.0, 0.0), 2, 2);
         assert!(close(o[0], [0.0, 0.0, 2.7]));
         // Top-left pixel looks left (-x) and up (+y).
         assert!(d[0][0] < 0.0 && d[0][1] > 0.0 && d[0][2] < 0.0);
         assert!(d[3][0] > 0.0 && d[3][1] < 0.0);
         // The vertical field of view: rays through the top and bottom edges span 18.84 deg.
-        let (_, col) = camera_rays(&cfg, 0.0, 0.0, 1, 1000);
+        let (_, col) = camera_rays(&cfg, Pose::new(0.0, 0.0), 1, 1000);
         let top = col[0][1].atan2(-col[0][2]);
         let bottom = col[999][1].atan2(-col[999][2]);
         assert!(((top - bottom).to_degrees() - 18.84).abs() < 0.05);
@@ -306,16 +307,16 @@ mod tests {
     #[test]
     fn yaw_and_pitch_move_the_camera_around_the_head() {
         let cfg = CameraConfig::new();
-        let p = camera_position(&cfg, std::f64::consts::FRAC_PI_2, 0.0);
+        let p = camera_position(&cfg, Pose::new(std::f64::consts::FRAC_PI_2, 0.0));
         assert!(close(
             p,
             [2.7, 0.0, 2.7 * std::f64::consts::FRAC_PI_2.cos()]
         ));
-        let p = camera_position(&cfg, 0.0, 0.3);
+        let p = camera_position(&cfg, Pose::new(0.0, 0.3));
         assert!(p[1] > 0.0);
         // The centre ray always passes through the origin.
         for (yaw, pitch) in [(0.4, -0.2), (-1.0, 0.5)] {
-            let (o, d) = camera_rays(&cfg, yaw, pitch, 3, 3);
+            let (o, d) = camera_rays(&cfg, Pose::new(yaw, pitch), 3, 3);
             let t = 2.7;
             let hit: [f64; 3] = std::array::from_fn(|k| o[4][k] + t * d[4][k]);
             assert!(hit.iter().all(|c| c.abs() < 1e-12), "{hit:?}");

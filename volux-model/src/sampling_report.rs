@@ -8,6 +8,7 @@
 //! against the plain counts' in the same sitting. `volux model sampling-report` prints it;
 //! docs/model.md records it.
 
+use crate::pose::Pose;
 use std::time::Instant;
 
 use burn::tensor::{Device, Distribution, Tensor};
@@ -159,7 +160,7 @@ fn render_chunked(
     chunk: usize,
     device: &Device,
 ) -> Maps {
-    let (o, d) = camera_ray_batch(&cfg.camera, &[(0.3, -0.1)], side, side, device);
+    let (o, d) = camera_ray_batch(&cfg.camera, &[Pose::new(0.3, -0.1)], side, side, device);
     let rays = side * side;
     let mut maps: [Vec<f32>; 4] = Default::default();
     let mut start = 0;

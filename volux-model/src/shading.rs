@@ -75,6 +75,7 @@ mod tests {
     use crate::backend::to_f32_vec;
     use crate::neiif::LatentField;
     use crate::neiif::NeiifConfig;
+    use crate::pose::Pose;
     use crate::ray_sampling::{camera_ray_batch, camera_rays};
     use crate::test_support::{Scaled, lighting, wave_light_maps as light_maps};
     use crate::volume_rendering::{RenderOutput, RenderWants, RendererConfig, render};
@@ -89,7 +90,7 @@ mod tests {
         }
     }
 
-    const POSES: [(f64, f64); 2] = [(0.4, -0.2), (-0.3, 0.1)];
+    const POSES: [Pose; 2] = [Pose::new(0.4, -0.2), Pose::new(-0.3, 0.1)];
     const YAWS: [f32; 2] = [-1.2, 0.5];
     const SIDE: usize = 8;
 
@@ -119,8 +120,8 @@ mod tests {
         let camera = RendererConfig::new().camera;
         let omega = sphere().specular_weights;
         let (mut edge, mut covered) = (0, 0);
-        for (e, &(yaw, pitch)) in POSES.iter().enumerate() {
-            let (_, dirs) = camera_rays(&camera, yaw, pitch, SIDE, SIDE);
+        for (e, &pose) in POSES.iter().enumerate() {
+            let (_, dirs) = camera_rays(&camera, pose, SIDE, SIDE);
             let light_yaw = f64::from(YAWS[e]);
             for (i, d) in dirs.iter().enumerate() {
                 let p = e * SIDE * SIDE + i;
@@ -250,7 +251,13 @@ mod tests {
                 field: &net,
                 w: w.clone(),
             };
-            let (o, d) = camera_ray_batch(&cfg.camera, &[(0.0, 0.0), (0.5, 0.2)], 4, 4, &device);
+            let (o, d) = camera_ray_batch(
+                &cfg.camera,
+                &[Pose::new(0.0, 0.0), Pose::new(0.5, 0.2)],
+                4,
+                4,
+                &device,
+            );
             let wants = RenderWants {
                 albedo: false,
                 normals: false,

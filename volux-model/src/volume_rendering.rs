@@ -391,6 +391,7 @@ mod tests {
     use crate::analytic::{RayReference, SoftSphere};
     use crate::backend::to_f32_vec;
     use crate::neiif::{LatentField, NeiifConfig};
+    use crate::pose::Pose;
     use crate::ray_sampling::{camera_ray_batch, camera_rays};
     use crate::test_support::{Scaled, lighting, wave_light_maps as light_maps};
     use burn::tensor::{Device, Distribution};
@@ -425,7 +426,7 @@ mod tests {
             .with_importance(64);
         let maps = light_maps(5, 1.0);
         let light = lighting(std::slice::from_ref(&maps), &[0.7], &device);
-        let (o, d) = camera_ray_batch(&cfg.camera, &[(0.0, 0.0)], 5, 5, &device);
+        let (o, d) = camera_ray_batch(&cfg.camera, &[Pose::new(0.0, 0.0)], 5, 5, &device);
         let out = render(&cfg, &sphere(), o, d, Some(&light), RenderWants::ALL, false);
         let at = |x: Option<Tensor<3>>| to_f32_vec(x.unwrap())[12 * 3..13 * 3].to_vec();
         let opacity = to_f32_vec(out.opacity.clone())[12];
@@ -468,11 +469,11 @@ mod tests {
         let maps = light_maps(9, 1.0);
         let refs: Vec<&LightMap> = maps.iter().collect();
         let light = lighting(std::slice::from_ref(&maps), &[-1.2], &device);
-        let pose = (0.4, -0.2);
+        let pose = Pose::new(0.4, -0.2);
         let (w, h) = (8, 8);
         let (o, d) = camera_ray_batch(&cfg.camera, &[pose], w, h, &device);
         let out = render(&cfg, &sphere(), o, d, Some(&light), RenderWants::ALL, false);
-        let (origins, dirs) = camera_rays(&cfg.camera, pose.0, pose.1, w, h);
+        let (origins, dirs) = camera_rays(&cfg.camera, pose, w, h);
         let opacity = to_f32_vec(out.opacity);
         let depth = to_f32_vec(out.depth.unwrap());
         let maps3 = [
@@ -547,7 +548,13 @@ mod tests {
                     .with_camera(camera.clone())
                     .with_stratified(12)
                     .with_importance(12);
-                let (o, d) = camera_ray_batch(&camera, &[(0.0, 0.0), (0.5, 0.2)], 4, 4, &device);
+                let (o, d) = camera_ray_batch(
+                    &camera,
+                    &[Pose::new(0.0, 0.0), Pose::new(0.5, 0.2)],
+                    4,
+                    4,
+                    &device,
+                );
                 let out = render(
                     &cfg,
                     &Scaled(&field, scale),
@@ -606,7 +613,7 @@ mod tests {
     fn unwanted_outputs_are_not_computed() {
         let device = Device::flex();
         let cfg = RendererConfig::new().with_stratified(8).with_importance(0);
-        let (o, d) = camera_ray_batch(&cfg.camera, &[(0.0, 0.0)], 3, 3, &device);
+        let (o, d) = camera_ray_batch(&cfg.camera, &[Pose::new(0.0, 0.0)], 3, 3, &device);
         let wants = RenderWants {
             albedo: true,
             normals: false,
@@ -627,6 +634,7 @@ mod compositing_order_tests {
     use super::*;
     use crate::analytic::SoftSphere;
     use crate::backend::to_f32_vec;
+    use crate::pose::Pose;
     use crate::ray_sampling::camera_ray_batch;
     use burn::tensor::Device;
 
@@ -673,7 +681,7 @@ mod compositing_order_tests {
             .with_importance(8)
             .with_midpoint(true);
         let cfg = config.camera.clone();
-        let (o, d) = camera_ray_batch(&cfg, &[(0.1, 0.05)], 6, 6, &device);
+        let (o, d) = camera_ray_batch(&cfg, &[Pose::new(0.1, 0.05)], 6, 6, &device);
         let wants = RenderWants {
             albedo: true,
             normals: true,

@@ -1,25 +1,27 @@
 //! Animated GIFs of sample sequences (a rotating camera, a rotating environment, a latent
 //! interpolation), looping forever.
 
-use std::fs::File;
-use std::io::BufWriter;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, RgbaImage};
+use volux_envmap::durable::{FileError, write_atomically};
 
 /// Why an animation cannot be written.
 #[derive(Debug, thiserror::Error)]
 pub enum AnimationError {
-    #[error("{path}: {message}")]
-    Write {
-        path: std::path::PathBuf,
-        message: String,
+    #[error(transparent)]
+    File(#[from] FileError),
+    #[error("{}: cannot encode the GIF", path.display())]
+    Encode {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
     },
 }
 
 /// Writes `frames` (8-bit sRGB, row-major, `width x height` each) as a looping GIF showing
-/// each frame for `delay_ms` milliseconds. The file appears only once complete.
+/// each frame for `delay_ms` milliseconds, atomically (the file appears only once complete).
 pub fn save_gif(
     path: &Path,
     width: usize,
@@ -27,17 +29,15 @@ pub fn save_gif(
     frames: &[Vec<[u8; 3]>],
     delay_ms: u32,
 ) -> Result<(), AnimationError> {
-    let fail = |message: String| AnimationError::Write {
+    let fail = |source| AnimationError::Encode {
         path: path.to_path_buf(),
-        message,
+        source,
     };
-    let tmp = path.with_extension("gif.partial");
-    let write = || -> Result<(), AnimationError> {
-        let file = File::create(&tmp).map_err(|e| fail(e.to_string()))?;
-        let mut encoder = GifEncoder::new_with_speed(BufWriter::new(file), 10);
-        encoder
-            .set_repeat(Repeat::Infinite)
-            .map_err(|e| fail(e.to_string()))?;
+    write_atomically(path, |tmp| {
+        // Encoded in memory (a few MB), so that a failed write is seen, not lost in a drop.
+        let mut bytes = Vec::new();
+        let mut encoder = GifEncoder::new_with_speed(&mut bytes, 10);
+        encoder.set_repeat(Repeat::Infinite).map_err(fail)?;
         for pixels in frames {
             assert_eq!(pixels.len(), width * height, "frame size");
             let rgba: Vec<u8> = pixels
@@ -45,20 +45,16 @@ pub fn save_gif(
                 .flat_map(|p| [p[0], p[1], p[2], 255])
                 .collect();
             let image = RgbaImage::from_raw(width as u32, height as u32, rgba)
-                .ok_or_else(|| fail("frame buffer size".into()))?;
+                .expect("the frame holds width x height pixels (asserted)");
             let delay = Delay::from_numer_denom_ms(delay_ms, 1);
             encoder
                 .encode_frame(Frame::from_parts(image, 0, 0, delay))
-                .map_err(|e| fail(e.to_string()))?;
+                .map_err(fail)?;
         }
         drop(encoder);
-        std::fs::rename(&tmp, path).map_err(|e| fail(e.to_string()))
-    };
-    let result = write();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
+        std::fs::write(tmp, &bytes).map_err(FileError::at(tmp))?;
+        Ok(())
+    })
 }
 
 #[cfg(test)]
@@ -66,6 +62,7 @@ mod tests {
     use super::*;
     use image::AnimationDecoder;
     use image::codecs::gif::GifDecoder;
+    use std::fs::File;
 
     #[test]
     fn a_gif_holds_every_frame() {

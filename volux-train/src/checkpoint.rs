@@ -46,8 +46,33 @@ const FILES: [&str; 6] = [
 /// Why a checkpoint cannot be written or read.
 #[derive(Debug, thiserror::Error)]
 pub enum CheckpointError {
-    #[error("{path}: {message}")]
-    File { path: PathBuf, message: String },
+    #[error("{}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{}", path.display())]
+    ReadState {
+        path: PathBuf,
+        #[source]
+        source: toml::de::Error,
+    },
+    #[error("{}", path.display())]
+    WriteState {
+        path: PathBuf,
+        #[source]
+        source: toml::ser::Error,
+    },
+    #[error("{}: checkpoint format {found} (this program reads {CHECKPOINT_FORMAT})", path.display())]
+    Format { path: PathBuf, found: u32 },
+    /// Burn cannot write, read or apply a network's or an optimiser's record.
+    #[error("{}", path.display())]
+    Record {
+        path: PathBuf,
+        #[source]
+        source: burn::store::RecordError,
+    },
     #[error("no complete checkpoint in {0}")]
     None(PathBuf),
     #[error(
@@ -64,10 +89,17 @@ pub enum CheckpointError {
     },
 }
 
-fn file_error(path: &Path, e: impl std::fmt::Display) -> CheckpointError {
-    CheckpointError::File {
+fn file_error(path: &Path, source: std::io::Error) -> CheckpointError {
+    CheckpointError::Io {
         path: path.to_path_buf(),
-        message: e.to_string(),
+        source,
+    }
+}
+
+fn record_error(path: &Path, source: burn::store::RecordError) -> CheckpointError {
+    CheckpointError::Record {
+        path: path.to_path_buf(),
+        source,
     }
 }
 
@@ -215,9 +247,8 @@ pub fn save(
     let done = root.join(&name);
     fs::create_dir(&partial).map_err(|e| file_error(&partial, e))?;
     let write = || -> Result<(), CheckpointError> {
-        let record = |p: &Path, r: Result<(), burn::store::RecordError>| {
-            r.map_err(|e| file_error(p, format!("{e:?}")))
-        };
+        let record =
+            |p: &Path, r: Result<(), burn::store::RecordError>| r.map_err(|e| record_error(p, e));
         let p = partial.join(GENERATOR);
         record(&p, nets.g.clone().save_file(&p))?;
         let p = partial.join(GENERATOR_EMA);
@@ -230,7 +261,10 @@ pub fn save(
         record(&p, nets.opt_d.save(&p))?;
         // The state goes last: a folder with state.toml is complete.
         let p = partial.join(STATE);
-        let text = toml::to_string(state).map_err(|e| file_error(&p, e))?;
+        let text = toml::to_string(state).map_err(|source| CheckpointError::WriteState {
+            path: p.clone(),
+            source,
+        })?;
         fs::write(&p, text).map_err(|e| file_error(&p, e))?;
         for file in FILES {
             let p = partial.join(file);
@@ -259,15 +293,15 @@ pub fn save(
 pub fn read_state(dir: &Path) -> Result<TrainState, CheckpointError> {
     let p = dir.join(STATE);
     let text = fs::read_to_string(&p).map_err(|e| file_error(&p, e))?;
-    let state: TrainState = toml::from_str(&text).map_err(|e| file_error(&p, e))?;
+    let state: TrainState = toml::from_str(&text).map_err(|source| CheckpointError::ReadState {
+        path: p.clone(),
+        source,
+    })?;
     if state.format != CHECKPOINT_FORMAT {
-        return Err(file_error(
-            &p,
-            format!(
-                "checkpoint format {} (this program reads {CHECKPOINT_FORMAT})",
-                state.format
-            ),
-        ));
+        return Err(CheckpointError::Format {
+            path: p,
+            found: state.format,
+        });
     }
     Ok(state)
 }
@@ -277,10 +311,9 @@ pub fn read_state(dir: &Path) -> Result<TrainState, CheckpointError> {
 pub fn load(dir: &Path, nets: Networks) -> Result<Networks, CheckpointError> {
     let module = |name: &str| {
         let p = dir.join(name);
-        burn::store::ModuleRecord::load(&p).map_err(|e| file_error(&p, format!("{e:?}")))
+        burn::store::ModuleRecord::load(&p).map_err(|e| record_error(&p, e))
     };
-    let apply =
-        |name: &str, e: burn::store::RecordError| file_error(&dir.join(name), format!("{e:?}"));
+    let apply = |name: &str, e: burn::store::RecordError| record_error(&dir.join(name), e);
     let g = nets
         .g
         .try_load_record(module(GENERATOR)?)
@@ -298,7 +331,7 @@ pub fn load(dir: &Path, nets: Networks) -> Result<Networks, CheckpointError> {
     finite(dir.join(DISCRIMINATORS), &d)?;
     let opt = |o: ModuleOptimizer, name: &str| {
         let p = dir.join(name);
-        o.load(&p).map_err(|e| file_error(&p, format!("{e:?}")))
+        o.load(&p).map_err(|e| record_error(&p, e))
     };
     Ok(Networks {
         g,
@@ -312,9 +345,7 @@ pub fn load(dir: &Path, nets: Networks) -> Result<Networks, CheckpointError> {
 /// Loads only the EMA generator (what sampling needs) into `ema`.
 pub fn load_ema(dir: &Path, ema: Generator) -> Result<Generator, CheckpointError> {
     let p = dir.join(GENERATOR_EMA);
-    let ema = ema
-        .try_load_file(&p)
-        .map_err(|e| file_error(&p, format!("{e:?}")))?;
+    let ema = ema.try_load_file(&p).map_err(|e| record_error(&p, e))?;
     finite(dir.join(GENERATOR_EMA), &ema)?;
     Ok(ema)
 }
@@ -328,10 +359,10 @@ pub fn load_ema_bytes(
 ) -> Result<Generator, CheckpointError> {
     let record =
         burn::store::ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes.to_vec()))
-            .map_err(|e| file_error(origin, format!("{e:?}")))?;
+            .map_err(|e| record_error(origin, e))?;
     let ema = ema
         .try_load_record(record)
-        .map_err(|e| file_error(origin, format!("{e:?}")))?;
+        .map_err(|e| record_error(origin, e))?;
     finite(origin.to_path_buf(), &ema)?;
     Ok(ema)
 }

@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+use volux_data::config_file::{self, ConfigFileError};
 use volux_data::dataset::{DataConfig, DataError};
 use volux_model::discriminator::DiscriminatorConfig;
 use volux_model::generator::GeneratorConfig;
@@ -20,8 +21,8 @@ use crate::schedule::ScheduleConfig;
 /// A config that cannot be used, with the file it came from.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
-    #[error("{path}: {message}")]
-    File { path: PathBuf, message: String },
+    #[error(transparent)]
+    File(#[from] ConfigFileError),
     /// `[data]` cannot be used: the data's own error, with its causes (boxed: it is large).
     #[error("{}", path.display())]
     Data {
@@ -307,28 +308,21 @@ pub struct TrainConfig {
 impl TrainConfig {
     /// Reads and checks `path`.
     pub fn load(path: &Path) -> Result<TrainConfig, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|e| ConfigError::File {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        })?;
+        let text = config_file::read(path)?;
         Self::from_text(text, path)
     }
 
     /// Checks the text of a config file that lives (or lived) at `path`; relative paths in
     /// `[data]` are taken relative to its folder.
     pub fn from_text(text: String, path: &Path) -> Result<TrainConfig, ConfigError> {
-        let bad = |message: String| ConfigError::File {
-            path: path.to_path_buf(),
-            message,
-        };
         let (data, data_hashed) = DataConfig::from_text(&text, path).map_err(|e| match e {
-            DataError::File { message, .. } => bad(message),
+            DataError::File(e) => ConfigError::File(e),
             other => ConfigError::Data {
                 path: path.to_path_buf(),
                 source: Box::new(other),
             },
         })?;
-        let file: ConfigFile = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        let file: ConfigFile = config_file::parse(&text, path)?;
         let config = TrainConfig {
             model: file.model,
             train: file.train,
@@ -340,7 +334,12 @@ impl TrainConfig {
             text,
             path: path.to_path_buf(),
         };
-        config.validate().map_err(bad)?;
+        config
+            .validate()
+            .map_err(|message| ConfigFileError::Invalid {
+                path: path.to_path_buf(),
+                message,
+            })?;
         Ok(config)
     }
 

@@ -8,6 +8,7 @@
 use serde::{Deserialize, Serialize};
 use volux_data::pose_distribution::PoseDistribution;
 use volux_envmap::random::SplitMix64;
+use volux_model::pose::Pose;
 
 /// Where the fakes' cameras come from (`[train] fake_poses`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
@@ -39,10 +40,10 @@ impl FakePoses {
     /// `rng` when the mode asks for it. `self` must be resolved (see [`FakePoses::resolve`]).
     pub fn poses(
         self,
-        real_poses: &[(f64, f64)],
+        real_poses: &[Pose],
         prior: &PoseDistribution,
         rng: &mut SplitMix64,
-    ) -> Vec<(f64, f64)> {
+    ) -> Vec<Pose> {
         match self {
             FakePoses::Dataset => real_poses.to_vec(),
             FakePoses::Prior => real_poses.iter().map(|_| prior.sample(rng)).collect(),
@@ -71,7 +72,11 @@ mod tests {
 
     #[test]
     fn each_mode_gives_its_poses() {
-        let reals = [(0.1, 0.0), (0.2, 0.05), (0.3, -0.05)];
+        let reals = [
+            Pose::new(0.1, 0.0),
+            Pose::new(0.2, 0.05),
+            Pose::new(0.3, -0.05),
+        ];
         let prior = PoseDistribution::default();
         let mut rng = SplitMix64::new(3);
         assert_eq!(FakePoses::Dataset.poses(&reals, &prior, &mut rng), reals);
@@ -81,14 +86,14 @@ mod tests {
         );
         assert!(FakePoses::Swap.poses(&[], &prior, &mut rng).is_empty());
         // The prior's draws: as many as reals, spread like the prior, reproducible.
-        let frontal = vec![(0.0, 0.0); 4000];
+        let frontal = vec![Pose::FRONTAL; 4000];
         let drawn = FakePoses::Prior.poses(&frontal, &prior, &mut SplitMix64::new(9));
         assert_eq!(drawn.len(), frontal.len());
-        let sd = |f: fn(&(f64, f64)) -> f64| {
+        let sd = |f: fn(&Pose) -> f64| {
             let mean = drawn.iter().map(f).sum::<f64>() / drawn.len() as f64;
             (drawn.iter().map(|p| (f(p) - mean).powi(2)).sum::<f64>() / drawn.len() as f64).sqrt()
         };
-        let (yaw_sd, pitch_sd) = (sd(|p| p.0), sd(|p| p.1));
+        let (yaw_sd, pitch_sd) = (sd(|p| p.yaw), sd(|p| p.pitch));
         assert!((yaw_sd - 0.3).abs() < 0.02, "yaw sd {yaw_sd}");
         assert!((pitch_sd - 0.155).abs() < 0.01, "pitch sd {pitch_sd}");
         assert_eq!(

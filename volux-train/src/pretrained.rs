@@ -81,10 +81,11 @@ impl ShippedModel {
     /// Parses the embedded state and loads the embedded EMA generator.
     pub fn load(&self, backend: BackendKind) -> Result<TrainedGenerator, TrainError> {
         let origin = PathBuf::from(self.folder);
-        let state: TrainState = toml::from_str(self.state).map_err(|e| CheckpointError::File {
-            path: origin.join(checkpoint::STATE),
-            message: e.to_string(),
-        })?;
+        let state: TrainState =
+            toml::from_str(self.state).map_err(|source| CheckpointError::ReadState {
+                path: origin.join(checkpoint::STATE),
+                source,
+            })?;
         let weights = origin.join(checkpoint::GENERATOR_EMA);
         TrainedGenerator::build(state, origin, backend, |g| {
             checkpoint::load_ema_bytes(&weights, self.generator_ema, g)

@@ -10,6 +10,7 @@ use volux_model::backend::to_f32_vec;
 use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
 use volux_model::light_lookup::Lighting;
 use volux_model::light_lookup::{LightingTensorError, lighting_tensors};
+use volux_model::pose::Pose;
 
 /// The latent of `seed`: `z_dim` standard normal numbers (Box-Muller on SplitMix64).
 pub fn latent(seed: u64, z_dim: usize) -> Vec<f32> {
@@ -106,7 +107,7 @@ fn grey(t: Tensor<4>, factor: usize) -> Vec<Vec<f32>> {
 pub fn render_layers(
     g: &Generator,
     z: Tensor<2>,
-    poses: &[(f64, f64)],
+    poses: &[Pose],
     lighting: &Lighting,
     background: [f32; 3],
 ) -> Result<SampleLayers, GeneratorError> {
@@ -143,7 +144,7 @@ pub enum SampleError {
 pub fn render_under(
     g: &Generator,
     z: Tensor<2>,
-    poses: &[(f64, f64)],
+    poses: &[Pose],
     lights: &LightMapSet,
     env_yaw: f64,
     background: [f32; 3],

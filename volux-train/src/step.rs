@@ -31,13 +31,14 @@ use crate::losses::{
 use crate::networks::{Discriminators, all_finite};
 use crate::progressive::faded_input;
 use crate::schedule::ActiveTerms;
+use volux_model::pose::Pose;
 
 /// What one step needs besides the networks.
 pub struct StepInputs<'a> {
     /// Latents `[batch, z_dim]` on the training device.
     pub z: Tensor<2>,
-    /// One `(yaw, pitch)` per element: the fakes' cameras (see [`crate::fake_poses`]).
-    pub poses: &'a [(f64, f64)],
+    /// One pose per element: the fakes' cameras (see [`crate::fake_poses`]).
+    pub poses: &'a [Pose],
     /// The real batch's lighting (needed only when the relit image is).
     pub lighting: Option<&'a Lighting>,
     /// The reals on the training device.

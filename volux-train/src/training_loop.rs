@@ -34,6 +34,7 @@ use crate::run_folder;
 use crate::sampling;
 use crate::schedule::Stage;
 use crate::step::{Phase, StepInputs, train_step};
+use volux_model::pose::Pose;
 
 /// Why training stopped with an error.
 #[derive(Debug, thiserror::Error)]
@@ -72,8 +73,15 @@ pub enum TrainError {
         #[source]
         source: BoxError,
     },
-    #[error("{path}: {message}")]
-    Io { path: PathBuf, message: String },
+    #[error("{}", path.display())]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A sample grid cannot be written (the image writer's error names the file).
+    #[error("writing a sample grid")]
+    Grid(#[source] volux_envmap::EnvMapError),
     #[error(
         "{count} steps in a row had non-finite losses or weights (last: {reason}); stopped after step {step} (metrics.jsonl's count). The last good checkpoint is {}",
         last_good.as_ref().map_or("none (no checkpoint was written)".to_string(), |p| p.display().to_string())
@@ -86,10 +94,10 @@ pub enum TrainError {
     },
 }
 
-fn io_error(path: &Path, e: impl std::fmt::Display) -> TrainError {
+fn io_error(path: &Path, source: std::io::Error) -> TrainError {
     TrainError::Io {
         path: path.to_path_buf(),
-        message: e.to_string(),
+        source,
     }
 }
 
@@ -117,8 +125,8 @@ pub struct StepReport {
     pub stage: Stage,
     pub fade: Vec<f64>,
     pub losses: BTreeMap<&'static str, f64>,
-    /// The `(yaw, pitch)` each fake was rendered from.
-    pub fake_poses: Vec<(f64, f64)>,
+    /// The pose each fake was rendered from.
+    pub fake_poses: Vec<Pose>,
     pub seconds: f64,
     pub skipped: Option<String>,
 }
@@ -475,7 +483,7 @@ impl Trainer {
         let device = self.device.clone().inner();
         let seeds = &c.output.grid_seeds;
         let z = sampling::latents(seeds, c.generator().mapping.z_dim, &device);
-        let poses = vec![(0.0, 0.0); seeds.len()];
+        let poses = vec![Pose::FRONTAL; seeds.len()];
         let layers = sampling::render_under(
             ema,
             z,
@@ -489,7 +497,7 @@ impl Trainer {
         std::fs::create_dir_all(&dir).map_err(|e| io_error(&dir, e))?;
         let path = dir.join(format!("grid-{:08}.png", self.state.images));
         volux_envmap::io::save_png(&path, sheet.width(), sheet.height(), &sheet.to_u8())
-            .map_err(|e| io_error(&path, e))?;
+            .map_err(TrainError::Grid)?;
         Ok(path)
     }
 

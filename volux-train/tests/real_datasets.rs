@@ -8,6 +8,7 @@ use volux_data::folder_dataset::{FolderSample, POSES_FILE, write_dataset};
 use volux_data::synthetic_head::{self, RenderSettings, SyntheticHead};
 use volux_envmap::io::linear_to_srgb;
 use volux_model::backend::BackendKind;
+use volux_model::pose::Pose;
 use volux_train::config::TrainConfig;
 use volux_train::training_loop::{TrainOptions, Trainer};
 
@@ -49,7 +50,11 @@ procedural_height = 16
 
 static ONE_RUN_AT_A_TIME: Mutex<()> = Mutex::new(());
 
-const POSES: [(f64, f64); 3] = [(0.4, 0.1), (-0.3, 0.0), (0.1, -0.1)];
+const POSES: [Pose; 3] = [
+    Pose::new(0.4, 0.1),
+    Pose::new(-0.3, 0.0),
+    Pose::new(0.1, -0.1),
+];
 
 /// Three synthetic heads written as a folder dataset (photo: the albedo, sRGB), with or
 /// without `poses.csv`.
@@ -98,7 +103,7 @@ fn trainer(dir: &Path, text: &str) -> Trainer {
 }
 
 /// The fakes' poses of two steps.
-fn fake_poses(t: &mut Trainer) -> Vec<(f64, f64)> {
+fn fake_poses(t: &mut Trainer) -> Vec<Pose> {
     (0..2).flat_map(|_| t.step().unwrap().fake_poses).collect()
 }
 
@@ -111,14 +116,16 @@ fn photos_without_poses_train_with_fakes_from_the_camera_prior() {
     assert_eq!(poses.len(), 4);
     // Every real is frontal; the fakes are not, and differ from each other.
     assert!(
-        poses.iter().all(|p| p.0.abs() > 1e-6 && p.1.abs() > 1e-6),
+        poses
+            .iter()
+            .all(|p| p.yaw.abs() > 1e-6 && p.pitch.abs() > 1e-6),
         "{poses:?}"
     );
     assert!(poses.windows(2).all(|w| w[0] != w[1]), "{poses:?}");
     assert!(
         poses
             .iter()
-            .all(|p| p.0.abs() <= 0.9 + 1e-9 && p.1.abs() <= 0.465 + 1e-9)
+            .all(|p| p.yaw.abs() <= 0.9 + 1e-9 && p.pitch.abs() <= 0.465 + 1e-9)
     );
 }
 
@@ -131,7 +138,7 @@ fn photos_with_poses_render_fakes_at_the_reals_poses_unless_told_otherwise() {
     assert!(
         poses.iter().all(|p| POSES
             .iter()
-            .any(|q| (p.0 - q.0).abs() < 1e-6 && (p.1 - q.1).abs() < 1e-6)),
+            .any(|q| (p.yaw - q.yaw).abs() < 1e-6 && (p.pitch - q.pitch).abs() < 1e-6)),
         "{poses:?}"
     );
     // Asked for the prior, a dataset with poses gets it too.
@@ -142,7 +149,7 @@ fn photos_with_poses_render_fakes_at_the_reals_poses_unless_told_otherwise() {
     assert!(
         poses
             .iter()
-            .all(|p| POSES.iter().all(|q| (p.0 - q.0).abs() > 1e-6)),
+            .all(|p| POSES.iter().all(|q| (p.yaw - q.yaw).abs() > 1e-6)),
         "{poses:?}"
     );
 }
@@ -162,7 +169,7 @@ fn an_unknown_fake_pose_mode_and_a_bad_prior_are_named() {
         ),
     ] {
         std::fs::write(&path, text).unwrap();
-        let e = TrainConfig::load(&path).expect_err("refused").to_string();
+        let e = volux_envmap::error::chain(&TrainConfig::load(&path).expect_err("refused"));
         assert!(e.contains(key) && e.contains("bad.toml"), "{e}");
     }
 }

@@ -4,13 +4,15 @@ use std::collections::BTreeMap;
 use std::fs;
 use std::path::{Path, PathBuf};
 
+use volux_model::pose::Pose;
+
 use super::{FolderError, MAX_YAW};
 
 /// Reads `poses.csv`: one row per photo in `photos`.
 pub(super) fn read_poses(
     path: &Path,
     photos: &BTreeMap<String, PathBuf>,
-) -> Result<BTreeMap<String, (f64, f64)>, FolderError> {
+) -> Result<BTreeMap<String, Pose>, FolderError> {
     let text = fs::read_to_string(path).map_err(|source| FolderError::Io {
         path: path.to_path_buf(),
         source,
@@ -96,7 +98,7 @@ pub(super) fn read_poses(
             });
         }
         lines_of.insert(stem.to_owned(), line);
-        poses.insert(stem.to_owned(), (yaw, pitch_value));
+        poses.insert(stem.to_owned(), Pose::new(yaw, pitch_value));
     }
     let stems: Vec<String> = photos
         .keys()

@@ -5,19 +5,23 @@ use crate::relighting::{DEFAULT_SPECULAR_WEIGHTS, relight};
 use volux_envmap::EnvMapError;
 use volux_envmap::direction::{self, Dir};
 use volux_envmap::{EnvMap, LightMap, PreconvolveOptions, preconvolve};
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::{CameraConfig, camera_basis, camera_rays};
 
 const W: usize = 24;
 const H: usize = 20;
-const POSES: [(&str, (f64, f64)); 3] =
-    [("a", (0.0, 0.0)), ("b", (0.4, -0.15)), ("c", (-0.7, 0.25))];
+const POSES: [(&str, Pose); 3] = [
+    ("a", Pose::new(0.0, 0.0)),
+    ("b", Pose::new(0.4, -0.15)),
+    ("c", Pose::new(-0.7, 0.25)),
+];
 
 /// A sphere of radius 0.3 at `pose`, `W x H`, by ray casting: camera-space normals (zero
 /// outside), a mask with a soft inner edge in steps of 1/255, albedo and photo gradients.
-fn sphere(stem: &str, pose: (f64, f64)) -> FolderSample {
+fn sphere(stem: &str, pose: Pose) -> FolderSample {
     let camera = CameraConfig::new();
-    let [right, up, back] = camera_basis(&camera, pose.0, pose.1);
-    let (origins, dirs) = camera_rays(&camera, pose.0, pose.1, W, H);
+    let [right, up, back] = camera_basis(&camera, pose);
+    let (origins, dirs) = camera_rays(&camera, pose, W, H);
     let mut image = IntrinsicImage {
         width: W,
         height: H,
@@ -449,7 +453,7 @@ fn unreadable_files_are_errors_naming_the_file_and_the_reason() {
             matches!(e, FolderError::Image(EnvMapError::Decode { .. })),
             "{e:?}"
         );
-        let msg = e.to_string();
+        let msg = volux_envmap::error::chain(&e);
         assert!(
             msg.contains(file) && msg.contains(&format!("cannot decode {format} image: ")),
             "{msg}"
@@ -549,12 +553,16 @@ fn pose_files_are_checked_row_by_row() {
     let ds = FolderDataset::open(&root).unwrap();
     assert_eq!(
         (0..3).map(|i| ds.pose(i)).collect::<Vec<_>>(),
-        [(0.1, 0.0), (0.0, -1.5), (-0.5, 0.25)]
+        [
+            Pose::new(0.1, 0.0),
+            Pose::new(0.0, -1.5),
+            Pose::new(-0.5, 0.25)
+        ]
     );
     // Without poses.csv every photo is frontal.
     fs::remove_file(&poses).unwrap();
     let ds = FolderDataset::open(&root).unwrap();
-    assert!((0..3).all(|i| ds.pose(i) == (0.0, 0.0)));
+    assert!((0..3).all(|i| ds.pose(i) == Pose::new(0.0, 0.0)));
 }
 
 #[test]
@@ -637,7 +645,7 @@ fn write_dataset_checks_before_writing() {
         "sample `b`: normals has a non-finite value at pixel (5, 0)"
     );
     let mut bad = samples.clone();
-    bad[2].image.pose.1 = -2.0;
+    bad[2].image.pose.pitch = -2.0;
     let msg = write_dataset(&root, &bad).unwrap_err().to_string();
     assert!(
         msg.starts_with("sample `c`: pose (-0.7, -2) must be finite"),
@@ -645,7 +653,7 @@ fn write_dataset_checks_before_writing() {
     );
     // A dataset is never written that reading would refuse: the yaw has the same bound.
     let mut bad = samples.clone();
-    bad[0].image.pose.0 = 7.0;
+    bad[0].image.pose.yaw = 7.0;
     let msg = write_dataset(&root, &bad).unwrap_err().to_string();
     assert!(
         msg.starts_with("sample `a`: pose (7, 0) must be finite with yaw within"),

@@ -9,6 +9,7 @@ use volux_envmap::EnvMapError;
 use volux_envmap::{durable, io};
 
 use super::{ALBEDO, FolderError, FolderSample, MASKS, MAX_YAW, NORMALS, PHOTOS, POSES_FILE};
+use volux_model::pose::Pose;
 
 /// Writes `samples` as a folder dataset at `root`, which must be new or empty: photos and
 /// masks as 8-bit PNG, albedo and normals as f32 OpenEXR (lossless), and `poses.csv` with
@@ -70,7 +71,7 @@ pub fn write_dataset(root: &Path, samples: &[FolderSample]) -> Result<(), Folder
         )?;
         let mask: Vec<[u8; 3]> = s.image.mask.iter().map(|&m| [to_u8(m); 3]).collect();
         io::save_png(&root.join(format!("masks/{stem}.png")), w, h, &mask)?;
-        let (yaw, pitch) = s.image.pose;
+        let Pose { yaw, pitch } = s.image.pose;
         let _ = writeln!(csv, "{stem},{yaw},{pitch}");
     }
     let poses = root.join(POSES_FILE);
@@ -125,7 +126,7 @@ fn check_sample(sample: &FolderSample) -> Result<(), FolderError> {
         )));
     }
     image.validate().map_err(|e| invalid(e.to_string()))?;
-    let (yaw, pitch) = image.pose;
+    let Pose { yaw, pitch } = image.pose;
     if !yaw.is_finite()
         || yaw.abs() > MAX_YAW
         || !pitch.is_finite()

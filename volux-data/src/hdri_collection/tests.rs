@@ -586,7 +586,7 @@ fn lighting_in_a_data_config_names_the_file_and_key_and_takes_folders_relative_t
             "zeniths",
         ),
     ] {
-        let e = load(text).unwrap_err().to_string();
+        let e = volux_envmap::error::chain(&load(text).unwrap_err());
         assert!(e.contains("run.toml") && e.contains(key), "{text}: {e}");
     }
 }

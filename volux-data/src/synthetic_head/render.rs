@@ -8,6 +8,7 @@ use volux_model::ray_sampling::{CameraConfig, camera_basis, camera_rays};
 use super::head::{BOUNDING_RADIUS, Material, SyntheticHead};
 use super::scalar::Dual;
 use crate::relighting::IntrinsicImage;
+use volux_model::pose::Pose;
 
 /// Sphere tracing steps by this fraction of the distance bound (the ellipsoids and smooth blends
 /// are bounds that can slightly overestimate near seams).
@@ -157,13 +158,13 @@ pub fn hit(
     })
 }
 
-/// Renders `head` at `pose = (yaw, pitch)`: rows in parallel, deterministic for any number of
+/// Renders `head` seen from `pose`: rows in parallel, deterministic for any number of
 /// threads (every pixel is computed on its own).
-pub fn render(head: &SyntheticHead, pose: (f64, f64), settings: &RenderSettings) -> HeadRender {
+pub fn render(head: &SyntheticHead, pose: Pose, settings: &RenderSettings) -> HeadRender {
     let (w, h, s) = (settings.width, settings.height, settings.supersample.max(1));
     let camera = &settings.camera;
-    let (origins, dirs) = camera_rays(camera, pose.0, pose.1, w * s, h * s);
-    let [right, up, back] = camera_basis(camera, pose.0, pose.1);
+    let (origins, dirs) = camera_rays(camera, pose, w * s, h * s);
+    let [right, up, back] = camera_basis(camera, pose);
     let hits: Vec<Vec<SurfaceHit>> = (0..w * h)
         .into_par_iter()
         .map(|i| {

@@ -9,6 +9,7 @@ use volux_model::ray_sampling::{camera_basis, camera_position, camera_rays};
 
 use super::photo::ambient_occlusion;
 use super::*;
+use volux_model::pose::Pose;
 
 fn lights_of(map: &EnvMap) -> volux_envmap::LightMapSet {
     preconvolve(map, &PreconvolveOptions::default()).unwrap()
@@ -37,9 +38,9 @@ fn to_world(n: [f32; 3], basis: [[f64; 3]; 3]) -> [f64; 3] {
 #[test]
 fn normals_are_the_distance_gradient_and_depths_lie_on_the_surface() {
     let settings = RenderSettings::square(48);
-    let pose = (0.25, -0.1);
-    let basis = camera_basis(&settings.camera, pose.0, pose.1);
-    let (origins, dirs) = camera_rays(&settings.camera, pose.0, pose.1, 48, 48);
+    let pose = Pose::new(0.25, -0.1);
+    let basis = camera_basis(&settings.camera, pose);
+    let (origins, dirs) = camera_rays(&settings.camera, pose, 48, 48);
     for seed in [0, 7] {
         let head = SyntheticHead::from_seed(seed);
         let render = render(&head, pose, &settings);
@@ -90,14 +91,14 @@ fn two_poses_of_one_head_agree_when_reprojected() {
     let side = 96;
     let settings = RenderSettings::square(side);
     let head = SyntheticHead::from_seed(3);
-    let (pose_a, pose_b) = ((0.3, 0.1), (-0.2, -0.05));
+    let (pose_a, pose_b) = (Pose::new(0.3, 0.1), Pose::new(-0.2, -0.05));
     let a = render(&head, pose_a, &settings);
     let b = render(&head, pose_b, &settings);
     let camera = &settings.camera;
-    let (origins_b, dirs_b) = camera_rays(camera, pose_b.0, pose_b.1, side, side);
-    let basis_a = camera_basis(camera, pose_a.0, pose_a.1);
-    let basis_b = camera_basis(camera, pose_b.0, pose_b.1);
-    let o_a = camera_position(camera, pose_a.0, pose_a.1);
+    let (origins_b, dirs_b) = camera_rays(camera, pose_b, side, side);
+    let basis_a = camera_basis(camera, pose_a);
+    let basis_b = camera_basis(camera, pose_b);
+    let o_a = camera_position(camera, pose_a);
     let tan = (camera.fov_degrees.to_radians() / 2.0).tan();
     let (mut interior, mut visible, mut depth_agree) = (0, 0, 0);
     let (mut angles, mut albedo_errors) = (Vec::new(), Vec::new());
@@ -196,7 +197,7 @@ fn a_constant_environment_shades_uniformly_and_the_photo_only_darkens_creases() 
     let set = lights_of(&EnvMap::constant(32, c).unwrap());
     let lights: Vec<&LightMap> = set.maps().iter().collect();
     let head = SyntheticHead::from_seed(11);
-    let render = render(&head, (0.1, 0.05), &RenderSettings::square(40));
+    let render = render(&head, Pose::new(0.1, 0.05), &RenderSettings::square(40));
     let shading = shade(&head, &render, &lights, 0.7, [0.0; 3]).unwrap();
     let mut aos = Vec::new();
     for i in 0..40 * 40 {
@@ -253,7 +254,7 @@ fn a_sun_casts_shadows_into_the_photo_only() {
     let set = lights_of(&sun);
     let lights: Vec<&LightMap> = set.maps().iter().collect();
     let head = SyntheticHead::from_seed(2);
-    let render = render(&head, (0.0, 0.0), &RenderSettings::square(48));
+    let render = render(&head, Pose::new(0.0, 0.0), &RenderSettings::square(48));
     let light = PhotoLighting::new(&lights, 0.0).unwrap();
     assert!(light.directionality() > 0.9, "{}", light.directionality());
     assert!(dot(light.key_direction(), normalize([1.0, 0.2, 0.4])) > 0.99);
@@ -282,7 +283,7 @@ fn the_same_seed_renders_the_same_image_on_any_number_of_threads() {
             .unwrap();
         pool.install(|| {
             let head = SyntheticHead::from_seed(42);
-            let render = render(&head, (0.2, 0.1), &settings);
+            let render = render(&head, Pose::new(0.2, 0.1), &settings);
             let shading = shade(&head, &render, &lights, 1.0, [0.5; 3]).unwrap();
             (render.image, render.depth, shading)
         })
@@ -291,7 +292,7 @@ fn the_same_seed_renders_the_same_image_on_any_number_of_threads() {
     assert_eq!(one, run(3));
     let other = {
         let head = SyntheticHead::from_seed(43);
-        render(&head, (0.2, 0.1), &settings).image
+        render(&head, Pose::new(0.2, 0.1), &settings).image
     };
     assert_ne!(one.0.albedo, other.albedo, "two seeds gave the same head");
 }
@@ -304,7 +305,7 @@ fn every_identity_is_one_plausible_head() {
     let settings = RenderSettings::square(side);
     for seed in 0..24 {
         let head = SyntheticHead::from_seed(seed);
-        let render = render(&head, (0.0, 0.0), &settings);
+        let render = render(&head, Pose::new(0.0, 0.0), &settings);
         let mask = &render.image.mask;
         let coverage = mask.iter().sum::<f32>() / mask.len() as f32;
         assert!(
@@ -382,7 +383,7 @@ fn extreme_light_stays_finite() {
     )
     .unwrap();
     let head = SyntheticHead::from_seed(5);
-    let render = render(&head, (0.0, 0.0), &RenderSettings::square(24));
+    let render = render(&head, Pose::new(0.0, 0.0), &RenderSettings::square(24));
     for map in [sun, EnvMap::constant(32, [0.0; 3]).unwrap()] {
         let set = lights_of(&map);
         let lights: Vec<&LightMap> = set.maps().iter().collect();
@@ -412,7 +413,7 @@ fn light_maps_other_than_the_four_lobes_are_refused() {
     .unwrap();
     let lights: Vec<&LightMap> = set.maps().iter().collect();
     let head = SyntheticHead::from_seed(0);
-    let render = render(&head, (0.0, 0.0), &RenderSettings::square(8));
+    let render = render(&head, Pose::new(0.0, 0.0), &RenderSettings::square(8));
     let err = shade(&head, &render, &lights, 0.0, [0.0; 3]).unwrap_err();
     assert_eq!(err, SyntheticError::Exponents(vec![1, 16]));
 }

@@ -1,3 +1,4 @@
+use crate::pose::Pose;
 use burn::tensor::{Device, Distribution, TensorData};
 use volux_envmap::random::SplitMix64;
 
@@ -144,7 +145,7 @@ fn importance_samples_bracket_a_stiff_surface() {
     // The centre ray of a frontal camera: the weight of the reference sits at t = 2.3977,
     // where the optical depth from the front reaches 1 (2.3 e-folding lengths before the
     // half-density radius at 2.4).
-    let (o, d) = camera_ray_batch(&cfg.camera, &[(0.0, 0.0)], 1, 1, &device);
+    let (o, d) = camera_ray_batch(&cfg.camera, &[Pose::new(0.0, 0.0)], 1, 1, &device);
     let t = to_f32_vec(place(&cfg, &stiff, &o, &d, false).importance);
     assert_eq!(t.len(), 12);
     assert!(t.windows(2).all(|p| p[0] <= p[1]), "sorted: {t:?}");
@@ -167,7 +168,13 @@ fn empty_rays_and_an_empty_batch_stay_finite() {
     let cfg = layout(0, 16, 8, 8);
     let maps = wave_light_maps(3, 1.0);
     let light = lighting(&[maps.clone(), maps], &[0.2f32, -0.4], &device);
-    let (o, d) = camera_ray_batch(&cfg.camera, &[(0.0, 0.0), (0.5, 0.1)], 4, 4, &device);
+    let (o, d) = camera_ray_batch(
+        &cfg.camera,
+        &[Pose::new(0.0, 0.0), Pose::new(0.5, 0.1)],
+        4,
+        4,
+        &device,
+    );
     // An empty batch: the draws fall back on the uniform share and spread over the ray.
     let p = place(&cfg, &empty, &o, &d, false);
     assert!(to_f32_vec(p.sigma).iter().all(|s| *s == 0.0));
@@ -206,7 +213,7 @@ fn empty_rays_and_an_empty_batch_stay_finite() {
         sphere: &stiff,
         k: k.clone(),
     };
-    let (o, d) = camera_ray_batch(&cfg.camera, &[(0.0, 0.0)], 6, 6, &device);
+    let (o, d) = camera_ray_batch(&cfg.camera, &[Pose::new(0.0, 0.0)], 6, 6, &device);
     let out = render(
         &cfg,
         &field,
@@ -251,7 +258,7 @@ fn gradients_through_the_composited_samples_match_f64_finite_differences() {
         sphere: &ball,
         k: k.clone(),
     };
-    let (side, pose) = (5, (0.2, -0.1));
+    let (side, pose) = (5, Pose::new(0.2, -0.1));
     let (o, d) = camera_ray_batch(&cfg.camera, &[pose], side, side, &device);
     let wants = RenderWants {
         albedo: false,
