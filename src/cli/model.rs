@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
+use volux_model::pose::Pose;
 
 use super::environment::env_map;
 use clap::{Args, Subcommand, ValueEnum};
@@ -13,7 +14,6 @@ use volux_model::backend::BackendKind;
 use volux_model::generator::{GeneratorConfig, GeneratorWants};
 use volux_model::light_lookup::LightMapBatch;
 use volux_model::light_lookup::Lighting;
-use volux_model::pose::Pose;
 use volux_model::presets::{self, DiscriminatorRole};
 use volux_model::sampling_report::{self, DEFAULT_LAYOUTS, ProposalLayout, SamplingSettings};
 

@@ -10,6 +10,7 @@ use clap::Args;
 use volux_data::contact_sheet::ContactSheet;
 use volux_envmap::io;
 use volux_model::backend::BackendKind;
+use volux_model::pose::Pose;
 use volux_train::animation::save_gif;
 use volux_train::pretrained::load_for_sampling;
 use volux_train::sampling::{self, SampleLayers};
@@ -17,7 +18,6 @@ use volux_train::video::save_mp4;
 
 use super::data::parse_seeds;
 use super::environment::environments;
-use volux_model::pose::Pose;
 
 #[derive(Debug, Args)]
 pub struct SampleArgs {

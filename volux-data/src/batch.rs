@@ -13,9 +13,9 @@ use std::thread::JoinHandle;
 use burn::tensor::{Device, Tensor, TensorData};
 use volux_envmap::LightMapSet;
 use volux_model::light_lookup::{Lighting, LightingTensorError, lighting_tensors};
+use volux_model::pose::Pose;
 
 use crate::training_sample::{LightingDraw, TrainingSample};
-use volux_model::pose::Pose;
 
 /// One batch on the host, planar `[batch, channels, h, w]` arrays.
 #[derive(Clone, Debug, PartialEq)]

@@ -15,10 +15,10 @@
 use volux_envmap::io::srgb_to_linear;
 use volux_envmap::random::SplitMix64;
 use volux_envmap::{LightMap, Rgb};
+use volux_model::pose::Pose;
 
 use crate::relighting::{IntrinsicImage, RelightError, SpecularWeights, relight_weighted};
 use crate::synthetic_head::{self, HeadRender, SyntheticError, SyntheticHead};
-use volux_model::pose::Pose;
 
 /// Which light maps, rotated by how much, lit a sample.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -12,6 +12,7 @@ use volux_data::relighting::RelightError;
 use volux_data::synthetic_head::SyntheticHead;
 use volux_envmap::{LightMapSet, Rgb};
 use volux_model::generator::Generator;
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::CameraConfig;
 use volux_train::config::TrainConfig;
 use volux_train::sampling::{self, SampleError};
@@ -24,7 +25,6 @@ use crate::reprojection::{DEFAULT_TOLERANCE, Reprojection, reproject};
 use crate::sample_quality::sample_quality;
 use crate::swd::{SwdError, SwdOptions};
 use crate::views::{Rendered, render_model, render_synthetic};
-use volux_model::pose::Pose;
 
 /// An environment's light maps under a short name.
 pub struct Environment {

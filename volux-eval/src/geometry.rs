@@ -5,12 +5,12 @@
 //! foreground), at the volume's resolution where both are rendered.
 
 use serde::Serialize;
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::{CameraConfig, camera_basis};
 
 use crate::image::{mean, median};
 use crate::reprojection::{FOREGROUND, unproject};
 use crate::views::Rendered;
-use volux_model::pose::Pose;
 
 /// Camera-space unit normals of a depth map's surface at interior pixels (`None` elsewhere).
 pub fn depth_normals(

@@ -21,6 +21,7 @@ use burn::tensor::Device;
 use volux_data::dataset::SourceConfig;
 use volux_envmap::LightMapSet;
 use volux_model::generator::Generator;
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::CameraConfig;
 use volux_train::config::TrainConfig;
 use volux_train::metrics::{BoxError, ProgressEvaluator};
@@ -30,7 +31,6 @@ use crate::geometry::{GeometryScore, render_angles};
 use crate::reprojection::{DEFAULT_TOLERANCE, Reprojection, reproject};
 use crate::sample_quality::{DataSets, LAYERS, distances, fake_sets};
 use crate::swd::SwdOptions;
-use volux_model::pose::Pose;
 
 /// How much the light evaluation measures.
 #[derive(Clone, Debug, PartialEq)]

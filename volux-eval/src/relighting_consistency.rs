@@ -74,8 +74,9 @@ impl ShadingScore {
 
 #[cfg(test)]
 mod tests {
-    use super::*;
     use volux_model::pose::Pose;
+
+    use super::*;
 
     fn view(albedo: f32, normal: f32, relit: f32, shaded: f32) -> Rendered {
         Rendered {

@@ -12,11 +12,11 @@
 
 use volux_envmap::Rgb;
 use volux_envmap::io::linear_to_srgb;
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::{CameraConfig, camera_basis, camera_position, camera_rays};
 
 use crate::image::{ErrorSums, bilinear, bilinear1, neighbourhood_min};
 use crate::views::Rendered;
-use volux_model::pose::Pose;
 
 /// Depth agreement in world units (the head spans about 1): about one volume pixel at the
 /// head's distance for the small model's 32x32 volume.

@@ -12,6 +12,7 @@ use volux_data::examples::Examples;
 use volux_data::training_sample::LightingDraw;
 use volux_envmap::LightMapSet;
 use volux_model::generator::Generator;
+use volux_model::pose::Pose;
 use volux_train::config::TrainConfig;
 use volux_train::sampling;
 
@@ -19,7 +20,6 @@ use crate::evaluate::EvalError;
 use crate::report::SwdRow;
 use crate::swd::{ImageSet, Swd, SwdOptions, swd};
 use crate::views::render_model;
-use volux_model::pose::Pose;
 
 /// The compared layers, in the order of every `[ImageSet; 3]` here.
 pub const LAYERS: [&str; 3] = ["albedo", "normals", "relit"];

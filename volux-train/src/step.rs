@@ -21,6 +21,7 @@ use volux_data::batch::BatchTensors;
 use volux_model::discriminator::Discriminator;
 use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
 use volux_model::light_lookup::Lighting;
+use volux_model::pose::Pose;
 use volux_model::presets::DiscriminatorRole;
 use volux_model::profile::{self, Phase as ProfilePhase};
 
@@ -31,7 +32,6 @@ use crate::losses::{
 use crate::networks::{Discriminators, all_finite};
 use crate::progressive::faded_input;
 use crate::schedule::ActiveTerms;
-use volux_model::pose::Pose;
 
 /// What one step needs besides the networks.
 pub struct StepInputs<'a> {

@@ -20,6 +20,7 @@ use volux_envmap::random::{self, SplitMix64};
 use volux_model::backend::{BackendError, BackendKind};
 use volux_model::generator::{Generator, GeneratorError};
 use volux_model::light_lookup::LightingTensorError;
+use volux_model::pose::Pose;
 use volux_model::profile::{self, Phase as ProfilePhase};
 
 use crate::adam::FusedAdam;
@@ -34,7 +35,6 @@ use crate::run_folder;
 use crate::sampling;
 use crate::schedule::Stage;
 use crate::step::{Phase, StepInputs, train_step};
-use volux_model::pose::Pose;
 
 /// Why training stopped with an error.
 #[derive(Debug, thiserror::Error)]

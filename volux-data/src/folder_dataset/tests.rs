@@ -1,11 +1,11 @@
 //! Tests of folder datasets on generated spheres: round trips, every bad input, relighting.
+use volux_model::pose::Pose;
 
 use super::*;
 use crate::relighting::{DEFAULT_SPECULAR_WEIGHTS, relight};
 use volux_envmap::EnvMapError;
 use volux_envmap::direction::{self, Dir};
 use volux_envmap::{EnvMap, LightMap, PreconvolveOptions, preconvolve};
-use volux_model::pose::Pose;
 use volux_model::ray_sampling::{CameraConfig, camera_basis, camera_rays};
 
 const W: usize = 24;

@@ -7,9 +7,9 @@ use std::path::Path;
 
 use volux_envmap::EnvMapError;
 use volux_envmap::{durable, io};
+use volux_model::pose::Pose;
 
 use super::{ALBEDO, FolderError, FolderSample, MASKS, MAX_YAW, NORMALS, PHOTOS, POSES_FILE};
-use volux_model::pose::Pose;
 
 /// Writes `samples` as a folder dataset at `root`, which must be new or empty: photos and
 /// masks as 8-bit PNG, albedo and normals as f32 OpenEXR (lossless), and `poses.csv` with

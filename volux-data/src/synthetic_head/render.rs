@@ -3,12 +3,12 @@
 //! coverage mask, depth, per-pixel specular weights), optionally supersampled.
 
 use rayon::prelude::*;
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::{CameraConfig, camera_basis, camera_rays};
 
 use super::head::{BOUNDING_RADIUS, Material, SyntheticHead};
 use super::scalar::Dual;
 use crate::relighting::IntrinsicImage;
-use volux_model::pose::Pose;
 
 /// Sphere tracing steps by this fraction of the distance bound (the ellipsoids and smooth blends
 /// are bounds that can slightly overestimate near seams).

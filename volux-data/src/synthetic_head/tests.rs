@@ -5,11 +5,11 @@
 use volux_envmap::direction::{dot, normalize};
 use volux_envmap::io::tonemap_pixel;
 use volux_envmap::{EnvMap, LightMap, PreconvolveOptions, preconvolve};
+use volux_model::pose::Pose;
 use volux_model::ray_sampling::{camera_basis, camera_position, camera_rays};
 
 use super::photo::ambient_occlusion;
 use super::*;
-use volux_model::pose::Pose;
 
 fn lights_of(map: &EnvMap) -> volux_envmap::LightMapSet {
     preconvolve(map, &PreconvolveOptions::default()).unwrap()

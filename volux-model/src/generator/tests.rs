@@ -1,0 +1,342 @@
+use super::*;
+use crate::backend::to_f32_vec;
+use crate::light_lookup::LightMapBatch;
+use burn::tensor::Distribution;
+use volux_envmap::LightMap;
+
+/// Light maps with a gradient in red and, in blue, one texel of `spike` (a sun).
+fn lighting(batch: usize, spike: f32, device: &Device) -> Lighting {
+    let maps: Vec<LightMap> = [1u32, 16, 32, 64]
+        .iter()
+        .map(|&n| {
+            let texels = (0..16 * 8)
+                .map(|i| [1.0 + (i % 16) as f32, 2.0, spike * f32::from(i == 40)])
+                .collect();
+            LightMap::new(n, 16, 8, texels)
+        })
+        .collect();
+    let batches = maps
+        .iter()
+        .map(|m| LightMapBatch::new(&vec![m; batch], device).unwrap())
+        .collect();
+    let yaw: Vec<f32> = (0..batch).map(|i| 0.7 + 2.1 * i as f32).collect();
+    let yaw = Tensor::from_floats(yaw.as_slice(), device);
+    Lighting::new(batches, Some(yaw)).unwrap()
+}
+
+/// The named parts all received finite, non-zero gradients.
+fn check_grads(g: &Generator, grads: &burn::tensor::Gradients, parts: &[&str]) {
+    let all: [(&str, Vec<Option<Vec<f32>>>); 4] = [
+        (
+            "mapping",
+            vec![g.mapping.layers[0].weight.val().grad(grads).map(to_f32_vec)],
+        ),
+        (
+            "neiif",
+            vec![
+                g.neiif.layers[0].weight.val().grad(grads).map(to_f32_vec),
+                g.neiif.head_out.weight.val().grad(grads).map(to_f32_vec),
+            ],
+        ),
+        (
+            "upsampler",
+            vec![
+                g.upsampler.blocks[0]
+                    .conv1
+                    .weight
+                    .val()
+                    .grad(grads)
+                    .map(to_f32_vec),
+            ],
+        ),
+        (
+            "relighting",
+            vec![g.relighting.out.weight.val().grad(grads).map(to_f32_vec)],
+        ),
+    ];
+    for (name, params) in all {
+        if !parts.contains(&name) {
+            continue;
+        }
+        for grad in params {
+            let grad = grad.unwrap_or_else(|| panic!("no gradient reached the {name}"));
+            assert!(
+                grad.iter().all(|v| v.is_finite()),
+                "{name}: non-finite gradient"
+            );
+            assert!(grad.iter().any(|v| *v != 0.0), "{name}: zero gradient");
+        }
+    }
+}
+
+#[test]
+fn small_preset_gives_every_output_and_a_full_backward_pass() {
+    let device = Device::flex().autodiff();
+    let config = GeneratorConfig::small();
+    let g = config.init(&device).unwrap();
+    assert_eq!(g.output_resolution(), 64);
+    let counts = g.parameter_counts();
+    assert_eq!(
+        counts.iter().map(|c| c.1).sum::<usize>(),
+        Module::num_params(&g),
+        "{counts:?}"
+    );
+    let z = Tensor::<2>::random([2, 128], Distribution::Normal(0.0, 1.0), &device);
+    let light = lighting(2, 1e5, &device);
+    let out = g
+        .forward(
+            z,
+            &[Pose::new(0.0, 0.0), Pose::new(0.4, -0.1)],
+            Some(&light),
+            [0.0; 3],
+            GeneratorWants::ALL,
+            None,
+            true,
+        )
+        .unwrap();
+    assert_eq!(out.opacity.dims(), [2, 1, 32, 32]);
+    for (name, t, c) in [
+        ("A_lo", &out.albedo_lo, 3),
+        ("N_lo", &out.normals_lo, 3),
+        ("D_lo", &out.diffuse_lo, 3),
+        ("S_lo", &out.specular_lo, 3),
+        ("F_lo", &out.features_lo, 64),
+        ("depth", &out.depth, 1),
+    ] {
+        assert_eq!(t.as_ref().unwrap().dims(), [2, c, 32, 32], "{name}");
+    }
+    assert_eq!(out.albedo_hi.as_ref().unwrap().dims(), [2, 3, 64, 64]);
+    assert_eq!(out.relit.as_ref().unwrap().dims(), [2, 3, 64, 64]);
+    let loss = out.relit.unwrap().mean()
+        + out.albedo_lo.unwrap().mean()
+        + out.normals_lo.unwrap().mean()
+        + out.albedo_hi.unwrap().mean();
+    let v: f32 = loss.clone().into_scalar();
+    assert!(v.is_finite());
+    check_grads(
+        &g,
+        &loss.backward(),
+        &["mapping", "neiif", "upsampler", "relighting"],
+    );
+}
+
+#[test]
+fn stage_one_runs_without_lighting_or_relighting() {
+    let device = Device::flex().autodiff();
+    let g = GeneratorConfig::small().init(&device).unwrap();
+    let z = Tensor::<2>::random([1, 128], Distribution::Normal(0.0, 1.0), &device);
+    let out = g
+        .forward(
+            z,
+            &[Pose::new(0.0, 0.0)],
+            None,
+            [1.0; 3],
+            GeneratorWants::STAGE1,
+            Some(&[0.5]),
+            true,
+        )
+        .unwrap();
+    assert!(out.relit.is_none() && out.diffuse_lo.is_none() && out.depth.is_none());
+    let loss = out.albedo_hi.unwrap().mean() + out.normals_lo.unwrap().mean();
+    check_grads(&g, &loss.backward(), &["mapping", "neiif", "upsampler"]);
+}
+
+#[test]
+fn paper_preset_on_a_subset_of_rays_and_its_full_resolution_2d_half() {
+    let device = Device::flex().autodiff();
+    let config = GeneratorConfig::paper(128);
+    let g = config.init(&device).unwrap();
+    let counts = g.parameter_counts();
+    assert_eq!(counts[1].1, {
+        // 63 -> 256, five 256 -> 256 modulated layers (each with a 512 -> in affine), the
+        // density head, the 256 -> 256 -> 7 head.
+        let modulated = |i: usize| 512 * i + i + 256 * i + 256;
+        modulated(63) + 5 * modulated(256) + 257 + (256 * 256 + 256) + (256 * 7 + 7)
+    });
+    let z = Tensor::<2>::random([1, 512], Distribution::Normal(0.0, 1.0), &device);
+    let w = g.mapping.forward(z);
+    // 48 rays of the 64x64 image: its central row, and 16 rays more.
+    let (o, d) = camera_ray_batch(
+        &config.renderer.camera,
+        &[Pose::new(0.2, 0.0)],
+        64,
+        64,
+        &device,
+    );
+    let (o, d) = (o.narrow(1, 64 * 32, 48), d.narrow(1, 64 * 32, 48));
+    let light = lighting(1, 1e5, &device);
+    let r = g
+        .render_rays(w.clone(), o, d, Some(&light), RenderWants::ALL, true)
+        .unwrap();
+    assert_eq!(r.features.as_ref().unwrap().dims(), [1, 48, 256]);
+    // The 2D half at full size: 64x64 features to 128x128 albedo and relit image.
+    let x = Tensor::<4>::random(
+        [1, 3 + 256, 64, 64],
+        Distribution::Normal(0.0, 1.0),
+        &device,
+    );
+    let hi = g.upsampler.forward(x, w, None);
+    assert_eq!(hi.dims(), [1, 128, 128, 128]);
+    let shading = Tensor::<4>::random([1, 3, 128, 128], Distribution::Uniform(0.0, 2.0), &device);
+    let relit = g.relighting.forward(
+        hi.clone().narrow(1, 0, 3),
+        shading.clone(),
+        shading,
+        hi.narrow(1, 3, 125),
+    );
+    assert_eq!(relit.dims(), [1, 3, 128, 128]);
+    let loss = relit.mean()
+        + r.diffuse.unwrap().mean()
+        + r.specular.unwrap().mean()
+        + r.normals.unwrap().mean();
+    check_grads(
+        &g,
+        &loss.backward(),
+        &["mapping", "neiif", "upsampler", "relighting"],
+    );
+}
+
+#[test]
+fn bad_sizes_and_missing_lighting_are_errors() {
+    let device = Device::flex();
+    let bad = GeneratorConfig::small();
+    let bad = GeneratorConfig {
+        output_resolution: 96,
+        ..bad
+    };
+    assert_eq!(
+        bad.init(&device).unwrap_err(),
+        GeneratorError::Resolution {
+            volume: 32,
+            output: 96
+        }
+    );
+    let g = GeneratorConfig::small().init(&device).unwrap();
+    let z = Tensor::<2>::random([1, 128], Distribution::Normal(0.0, 1.0), &device);
+    let err = g
+        .forward(
+            z.clone(),
+            &[Pose::new(0.0, 0.0)],
+            None,
+            [0.0; 3],
+            GeneratorWants::ALL,
+            None,
+            false,
+        )
+        .unwrap_err();
+    assert!(matches!(err, GeneratorError::NoLighting { .. }), "{err}");
+    let err = g
+        .forward(
+            z,
+            &[Pose::new(0.0, 0.0), Pose::new(0.1, 0.0)],
+            None,
+            [0.0; 3],
+            GeneratorWants::STAGE1,
+            None,
+            false,
+        )
+        .unwrap_err();
+    assert!(
+        matches!(err, GeneratorError::Batch { z: 1, poses: 2, .. }),
+        "{err}"
+    );
+}
+
+/// The whole generator on the GPU path (CI runs it on a software Vulkan driver): the same
+/// weights give the same outputs as on the CPU, and a backward pass runs.
+#[cfg(feature = "wgpu")]
+#[test]
+fn wgpu_generator_agrees_with_flex() {
+    let tiny = GeneratorConfig::new(
+        MappingNetworkConfig::new()
+            .with_z_dim(8)
+            .with_w_dim(8)
+            .with_layers(2),
+        NeiifConfig::new()
+            .with_w_dim(8)
+            .with_width(16)
+            .with_head_width(8)
+            .with_frequencies(4),
+        RendererConfig::new().with_stratified(6).with_importance(6),
+        8,
+        16,
+        8,
+        vec![8, 8],
+    );
+    let flex = Device::flex();
+    let gpu = crate::backend::BackendKind::Wgpu.device().unwrap();
+    let g = tiny.init(&flex).unwrap();
+    let z = Tensor::<2>::random([2, 8], Distribution::Normal(0.0, 1.0), &flex);
+    let poses = [(0.0, 0.0), (0.3, 0.1)];
+    let run = |g: &Generator, z: Tensor<2>, device: &Device| {
+        let out = g
+            .forward(
+                z,
+                &poses,
+                Some(&lighting(2, 0.0, device)),
+                [0.0; 3],
+                GeneratorWants::ALL,
+                None,
+                false,
+            )
+            .unwrap();
+        [
+            out.albedo_lo.unwrap(),
+            out.normals_lo.unwrap(),
+            out.diffuse_lo.unwrap(),
+            out.specular_lo.unwrap(),
+            out.albedo_hi.unwrap(),
+            out.relit.unwrap(),
+        ]
+    };
+    let cpu = run(&g, z.clone(), &flex);
+    let on_gpu = run(&g.clone().to_device(&gpu), z.to_device(&gpu), &gpu);
+    for (k, (a, b)) in cpu.into_iter().zip(on_gpu).enumerate() {
+        let (a, b) = (to_f32_vec(a), to_f32_vec(b));
+        // Smooth light maps: next to a 1e5 texel, last-bit differences of the normals
+        // would be amplified into large ones (the CPU tests cover that stiff case).
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs() / (1.0 + x.abs()))
+            .fold(0.0f32, f32::max);
+        assert!(
+            worst < 1e-3,
+            "output {k}: wgpu differs from flex by {worst}"
+        );
+    }
+    let ad = gpu.clone().autodiff();
+    let g = tiny.init(&ad).unwrap();
+    let z = Tensor::<2>::random([2, 8], Distribution::Normal(0.0, 1.0), &ad);
+    let loss = run(&g, z, &ad)
+        .into_iter()
+        .map(|t| t.mean())
+        .reduce(|a, b| a + b)
+        .unwrap();
+    check_grads(
+        &g,
+        &loss.backward(),
+        &["mapping", "neiif", "upsampler", "relighting"],
+    );
+}
+
+#[test]
+fn normals_go_to_camera_space() {
+    let device = Device::flex();
+    let camera = CameraConfig::new();
+    let world =
+        Tensor::<1>::from_floats([0.0, 0.0, 1.0, 1.0, 0.0, 0.0], &device).reshape([2, 1, 3]);
+    let cam = to_f32_vec(to_camera_space(
+        world,
+        &camera,
+        &[
+            Pose::new(0.0, 0.0),
+            Pose::new(std::f64::consts::FRAC_PI_2, 0.0),
+        ],
+        &device,
+    ));
+    // Frontal: world +z faces the camera. Yaw 90 degrees: the camera sits on +x.
+    for (g, w) in cam.iter().zip([0.0, 0.0, 1.0, 0.0, 0.0, 1.0]) {
+        assert!((g - w).abs() < 1e-6, "{cam:?}");
+    }
+}

@@ -1,0 +1,189 @@
+use super::*;
+
+const TINY: &str = r#"
+[model]
+preset = "small"
+
+[train]
+batch = 4
+
+[data]
+resolution = 64
+volume_resolution = 32
+"#;
+
+fn load(text: &str) -> Result<TrainConfig, String> {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.toml");
+    std::fs::write(&path, text).unwrap();
+    // The whole chain, as the binary prints it: `[data]` errors keep their causes.
+    TrainConfig::load(&path).map_err(|e| volux_envmap::error::chain(&e))
+}
+
+#[test]
+fn a_small_config_loads_with_the_paper_defaults() {
+    let c = load(TINY).unwrap();
+    assert_eq!(c.train.batch, 4);
+    assert_eq!((c.train.lr_g, c.train.lr_d), (0.0022, 0.0025));
+    assert_eq!((c.train.beta1, c.train.beta2), (0.0, 0.99));
+    assert_eq!(c.loss, LossWeights::default());
+    assert_eq!(c.blocks(), 1);
+    assert_eq!(c.generator().neiif.frequencies, 10);
+}
+
+#[test]
+fn model_overrides_reach_the_generator() {
+    let text = TINY.replace(
+        "\"small\"",
+        "\"small\"\nstratified = 6\nimportance = 3\nsphere_prior = 10.0\nsphere_radius = 0.35\nfrequencies = 4",
+    );
+    let g = load(&text).unwrap().generator();
+    assert_eq!((g.renderer.stratified, g.renderer.importance), (6, 3));
+    assert_eq!((g.neiif.sphere_prior, g.neiif.sphere_radius), (10.0, 0.35));
+    assert_eq!(g.neiif.frequencies, 4);
+    assert_eq!(
+        (g.renderer.proposal, g.renderer.refine),
+        (0, 0),
+        "EG3D's unless asked"
+    );
+    let text = TINY.replace(
+        "\"small\"",
+        "\"small\"\nstratified = 0\nproposal = 32\nrefine = 16\nimportance = 12",
+    );
+    let c = load(&text).unwrap();
+    let r = c.generator().renderer;
+    assert_eq!(
+        (r.stratified, r.proposal, r.refine, r.importance),
+        (0, 32, 16, 12)
+    );
+    assert!(
+        c.shapes().contains("proposal = 32"),
+        "a resume must match it"
+    );
+    assert_eq!(g.renderer.shading, Shading::Volume, "volume unless asked");
+    for (key, want) in [("volume", Shading::Volume), ("surface", Shading::Surface)] {
+        let text = TINY.replace("\"small\"", &format!("\"small\"\nshading = \"{key}\""));
+        let c = load(&text).unwrap();
+        assert_eq!(c.generator().renderer.shading, want);
+        // The shading mode is part of what a resumed run must match; writing out the
+        // default changes nothing.
+        let shapes = c.shapes();
+        assert_eq!(
+            shapes.contains("shading = \"surface\""),
+            key == "surface",
+            "{shapes}"
+        );
+        assert_eq!(shapes == load(TINY).unwrap().shapes(), key == "volume");
+    }
+}
+
+#[test]
+fn bad_configs_name_the_file_and_the_key() {
+    let cases = [
+        (
+            TINY.replace("batch = 4", "batch = 4\nbatchsize = 2"),
+            "batchsize",
+        ),
+        (TINY.replace("batch = 4", "batch = \"four\""), "batch"),
+        (TINY.replace("batch = 4", "batch = 6"), "train.batch = 6"),
+        (TINY.replace("batch = 4", "lr_g = -1.0"), "train.lr_g"),
+        (TINY.replace("batch = 4", "beta2 = 1.0"), "train.beta2"),
+        (
+            TINY.replace("batch = 4", "batch = 1000000000000"),
+            "train.batch = 1000000000000 must be in 1..=1024",
+        ),
+        (TINY.replace("\"small\"", "\"huge\""), "model.preset"),
+        (
+            TINY.replace("\"small\"", "\"small\"\nsphere_radius = 2.0"),
+            "model.sphere_radius",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nfrequencies = 0"),
+            "model.frequencies",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nshading = \"surfaces\""),
+            "shading",
+        ),
+        (
+            TINY.replace("resolution = 64", "resolution = 128"),
+            "data.resolution",
+        ),
+        (format!("{TINY}\n[loss]\nphoto = -0.5\n"), "loss.photo"),
+        (format!("{TINY}\n[loss]\nphotos = 0.5\n"), "photos"),
+        (
+            format!("{TINY}\n[schedule]\nstage1_kimg = 1.0\nfade_kimg = 2.0\n"),
+            "fade_kimg",
+        ),
+        (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
+        (
+            format!("{TINY}\n[data.source]\nkind = \"synthetic\"\nidentity = 3\n"),
+            "identity",
+        ),
+        (TINY.replace("[model]\npreset = \"small\"", ""), "model"),
+        (
+            TINY.replace("\"small\"", "\"small\"\nrefine = 8"),
+            "refine = 8",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nproposal = 32\nimportance = 0"),
+            "importance = 0",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nproposal = 32\nimportance = 1"),
+            "model.importance = 1",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nproposal = 100000"),
+            "model.proposal = 100000",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nstratified = 0"),
+            "model.stratified = 0",
+        ),
+    ];
+    for (text, key) in cases {
+        let e = load(&text).expect_err(key);
+        assert!(e.contains("run.toml"), "{e}");
+        assert!(e.contains(key), "expected `{key}` in: {e}");
+    }
+}
+
+/// The resolved config names every key, and loads back to the same config, for the
+/// shipped configs and for one that leaves nearly everything to the defaults.
+#[test]
+fn the_resolved_config_fills_in_every_default_and_loads_back_the_same() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+    let mut configs: Vec<TrainConfig> = ["quickstart.toml", "synthetic64.toml"]
+        .iter()
+        .map(|name| TrainConfig::load(&root.join(name)).unwrap())
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("run.toml");
+    configs.push(TrainConfig::from_text(TINY.to_string(), &path).unwrap());
+    for config in configs {
+        let text = config.resolved();
+        for key in [
+            "lr_g",
+            "r1_gamma",
+            "ema_rampup",
+            "fade_kimg",
+            "geometry",
+            "eval_samples",
+            "volume_resolution",
+            "identities",
+            "procedural_height",
+            "turbidity",
+        ] {
+            assert!(text.contains(key), "{key} missing from:\n{text}");
+        }
+        let again = TrainConfig::from_text(text.clone(), &config.path).unwrap();
+        assert_eq!(again.model, config.model);
+        assert_eq!(again.train, config.train);
+        assert_eq!(again.schedule, config.schedule);
+        assert_eq!(again.loss, config.loss);
+        assert_eq!(again.output, config.output);
+        assert_eq!(again.data, config.data, "{text}");
+        assert_eq!(again.resolved(), text);
+    }
+}
