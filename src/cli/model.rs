@@ -11,7 +11,8 @@ use super::environment::env_map;
 use clap::{Args, Subcommand, ValueEnum};
 use volux_envmap::{PreconvolveOptions, preconvolve};
 use volux_model::backend::BackendKind;
-use volux_model::generator::{GeneratorConfig, GeneratorWants};
+use volux_model::generated::GeneratorWants;
+use volux_model::generator::GeneratorConfig;
 use volux_model::light_lookup::LightMapBatch;
 use volux_model::light_lookup::Lighting;
 use volux_model::presets::{self, DiscriminatorRole};
@@ -238,9 +239,9 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
             None,
             true,
         )?;
-        let loss = out.relit.expect("asked").mean()
-            + out.albedo_lo.expect("asked").mean()
-            + out.normals_lo.expect("asked").mean();
+        let loss = out.layers.relit.expect("asked").mean()
+            + out.layers.albedo_lo.expect("asked").mean()
+            + out.layers.normals_lo.expect("asked").mean();
         let _grads = loss.backward();
         let s = start.elapsed().as_secs_f64();
         if i > 0 {

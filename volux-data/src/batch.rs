@@ -15,6 +15,7 @@ use volux_envmap::LightMapSet;
 use volux_model::light_lookup::{Lighting, LightingTensorError, lighting_tensors};
 use volux_model::pose::Pose;
 
+use crate::layers::{Layers, Scale};
 use crate::training_sample::{LightingDraw, TrainingSample};
 
 /// One batch on the host, planar `[batch, channels, h, w]` arrays.
@@ -27,44 +28,24 @@ pub struct Batch {
     pub side_lo: usize,
     /// Which batch of the stream this is.
     pub index: u64,
-    pub photo: Vec<f32>,
-    pub relit: Vec<f32>,
-    pub albedo_hi: Vec<f32>,
-    pub albedo_lo: Vec<f32>,
-    pub normals_lo: Vec<f32>,
-    pub mask: Vec<f32>,
-    pub diffuse: Vec<f32>,
-    pub specular: Vec<f32>,
+    /// Every layer, planar (`[batch, channels, side, side]`), sRGB layers mapped to
+    /// `[-1, 1]`.
+    pub layers: Layers<Vec<f32>>,
     pub poses: Vec<Pose>,
     /// The (environment, rotation) each example was lit with; the generator's samples of this
     /// step are lit with the same draws.
     pub draws: Vec<LightingDraw>,
 }
 
-/// A batch on a device.
-#[derive(Clone, Debug)]
-pub struct BatchTensors {
-    /// `[b, 3, H, W]`, sRGB in `[-1, 1]` (D_P's reals).
-    pub photo: Tensor<4>,
-    /// `[b, 3, H, W]`, sRGB in `[-1, 1]`.
-    pub relit: Tensor<4>,
-    /// `[b, 3, H, W]`, linear in `[0, 1]` over the background.
-    pub albedo_hi: Tensor<4>,
-    /// `[b, 3, h, w]`.
-    pub albedo_lo: Tensor<4>,
-    /// `[b, 3, h, w]`, camera space, over 0.
-    pub normals_lo: Tensor<4>,
-    /// `[b, 1, H, W]`.
-    pub mask: Tensor<4>,
-    /// `[b, 3, H, W]`, linear HDR.
-    pub diffuse: Tensor<4>,
-    pub specular: Tensor<4>,
-}
+/// A batch on a device: every layer `[b, channels, side, side]` in the batch's ranges (see
+/// [`crate::layers`]: sRGB layers in `[-1, 1]`, D_P's reals the photo).
+pub type BatchTensors = Layers<Tensor<4>>;
 
-/// Appends a row-major `[h * w]` layer of `C`-vectors as `C` planes, mapped by `f`.
-fn push_planar<const C: usize>(out: &mut Vec<f32>, layer: &[[f32; C]], f: impl Fn(f32) -> f32) {
-    for c in 0..C {
-        out.extend(layer.iter().map(|v| f(v[c])));
+/// Appends a row-major layer of `channels`-vectors (interleaved) as `channels` planes, mapped
+/// by `f`.
+fn push_planar(out: &mut Vec<f32>, layer: &[f32], channels: usize, f: impl Fn(f32) -> f32) {
+    for c in 0..channels {
+        out.extend(layer.iter().skip(c).step_by(channels).map(|&v| f(v)));
     }
 }
 
@@ -77,35 +58,28 @@ impl Batch {
             samples.iter().all(|s| s.side == side && s.factor == factor),
             "examples of one batch share their sizes"
         );
-        let to_signed = |v: f32| v * 2.0 - 1.0;
-        let same = |v: f32| v;
-        let mut batch = Batch {
+        let layers = Layers::from_fn(|layer| {
+            let mut planes = Vec::with_capacity(samples.len() * layer.floats(side, factor));
+            let to_signed = |v: f32| v * 2.0 - 1.0;
+            for s in samples {
+                let (values, c) = (s.layers.get(layer), layer.channels());
+                if layer.is_srgb() {
+                    push_planar(&mut planes, values, c, to_signed);
+                } else {
+                    push_planar(&mut planes, values, c, |v| v);
+                }
+            }
+            planes
+        });
+        Batch {
             size: samples.len(),
             side,
             side_lo: side / factor,
             index,
-            photo: Vec::new(),
-            relit: Vec::new(),
-            albedo_hi: Vec::new(),
-            albedo_lo: Vec::new(),
-            normals_lo: Vec::new(),
-            mask: Vec::new(),
-            diffuse: Vec::new(),
-            specular: Vec::new(),
+            layers,
             poses: samples.iter().map(|s| s.pose).collect(),
             draws: samples.iter().map(|s| s.draw).collect(),
-        };
-        for s in samples {
-            push_planar(&mut batch.photo, &s.photo, to_signed);
-            push_planar(&mut batch.relit, &s.relit, to_signed);
-            push_planar(&mut batch.albedo_hi, &s.albedo_hi, same);
-            push_planar(&mut batch.albedo_lo, &s.albedo_lo, same);
-            push_planar(&mut batch.normals_lo, &s.normals_lo, same);
-            batch.mask.extend_from_slice(&s.mask);
-            push_planar(&mut batch.diffuse, &s.diffuse, same);
-            push_planar(&mut batch.specular, &s.specular, same);
         }
-        batch
     }
 
     /// The light maps and yaws the batch's draws name, on `device`, as the generator's
@@ -129,20 +103,14 @@ impl Batch {
 
     /// The batch on `device`.
     pub fn to_tensors(&self, device: &Device) -> BatchTensors {
-        let (b, hi, lo) = (self.size, self.side, self.side_lo);
-        let t = |v: &[f32], c: usize, s: usize| {
-            Tensor::<4>::from_data(TensorData::new(v.to_vec(), [b, c, s, s]), device)
-        };
-        BatchTensors {
-            photo: t(&self.photo, 3, hi),
-            relit: t(&self.relit, 3, hi),
-            albedo_hi: t(&self.albedo_hi, 3, hi),
-            albedo_lo: t(&self.albedo_lo, 3, lo),
-            normals_lo: t(&self.normals_lo, 3, lo),
-            mask: t(&self.mask, 1, hi),
-            diffuse: t(&self.diffuse, 3, hi),
-            specular: t(&self.specular, 3, hi),
-        }
+        self.layers.map(|layer, values| {
+            let s = match layer.scale() {
+                Scale::Output => self.side,
+                Scale::Volume => self.side_lo,
+            };
+            let shape = [self.size, layer.channels(), s, s];
+            Tensor::<4>::from_data(TensorData::new(values.clone(), shape), device)
+        })
     }
 }
 
@@ -248,14 +216,16 @@ mod tests {
             factor: 2,
             pose: Pose::new(value as f64, 0.0),
             draw: LightingDraw { map: 1, yaw: 0.5 },
-            photo: vec![[value, 0.0, 1.0]; n],
-            relit: vec![[0.5; 3]; n],
-            albedo_hi: (0..n).map(|i| [i as f32, value, 0.0]).collect(),
-            albedo_lo: vec![[value; 3]; lo],
-            normals_lo: vec![[0.0, 0.0, value]; lo],
-            mask: vec![value; n],
-            diffuse: vec![[2.0; 3]; n],
-            specular: vec![[3.0; 3]; n],
+            layers: Layers {
+                photo: [value, 0.0, 1.0].repeat(n),
+                relit: vec![0.5; 3 * n],
+                albedo_hi: (0..n).flat_map(|i| [i as f32, value, 0.0]).collect(),
+                albedo_lo: vec![value; 3 * lo],
+                normals_lo: [0.0, 0.0, value].repeat(lo),
+                mask: vec![value; n],
+                diffuse: vec![2.0; 3 * n],
+                specular: vec![3.0; 3 * n],
+            },
         }
     }
 

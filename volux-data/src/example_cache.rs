@@ -26,6 +26,7 @@ use volux_model::pose::Pose;
 use crate::batch::Batch;
 use crate::dataset::{DataError, Dataset};
 use crate::digest::{Digest, hex};
+use crate::layers::{Layer, Layers};
 use crate::training_sample::{LightingDraw, TrainingSample};
 
 /// Bump when the examples a dataset makes change (rendering, relighting, layer conventions), so
@@ -130,10 +131,11 @@ fn shard_name(index: u64) -> String {
 
 /// Floats per example at `side` and `side / factor`.
 fn example_floats(side: usize, factor: usize) -> usize {
-    let (hi, lo) = (side * side, (side / factor) * (side / factor));
-    // pose (2), draw (2), photo, relit, albedo hi, diffuse, specular (3 hi each), mask (hi),
-    // albedo lo, normals lo (3 lo each).
-    4 + 15 * hi + hi + 6 * lo
+    // pose (2), draw (2), then every layer in the order of `Layer::ALL`.
+    4 + Layer::ALL
+        .iter()
+        .map(|l| l.floats(side, factor))
+        .sum::<usize>()
 }
 
 fn encode_example(out: &mut Vec<u8>, s: &TrainingSample) {
@@ -142,12 +144,8 @@ fn encode_example(out: &mut Vec<u8>, s: &TrainingSample) {
     put(s.pose.pitch as f32);
     put(s.draw.map as f32);
     put(s.draw.yaw as f32);
-    for layer in [&s.photo, &s.relit, &s.albedo_hi, &s.diffuse, &s.specular] {
-        layer.iter().flatten().for_each(|&v| put(v));
-    }
-    s.mask.iter().for_each(|&v| put(v));
-    for layer in [&s.albedo_lo, &s.normals_lo] {
-        layer.iter().flatten().for_each(|&v| put(v));
+    for (_, values) in s.layers.iter() {
+        values.iter().for_each(|&v| put(v));
     }
 }
 
@@ -156,7 +154,6 @@ fn decode_example(bytes: &[u8], side: usize, factor: usize) -> TrainingSample {
         .chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
         .collect();
-    let (hi, lo) = (side * side, (side / factor) * (side / factor));
     let pose = Pose::new(f64::from(floats[0]), f64::from(floats[1]));
     let draw = LightingDraw {
         map: floats[2] as usize,
@@ -168,30 +165,13 @@ fn decode_example(bytes: &[u8], side: usize, factor: usize) -> TrainingSample {
         at += n;
         part
     };
-    let rgb = |part: &[f32]| -> Vec<[f32; 3]> {
-        part.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
-    };
-    let photo = rgb(take(3 * hi));
-    let relit = rgb(take(3 * hi));
-    let albedo_hi = rgb(take(3 * hi));
-    let diffuse = rgb(take(3 * hi));
-    let specular = rgb(take(3 * hi));
-    let mask = take(hi).to_vec();
-    let albedo_lo = rgb(take(3 * lo));
-    let normals_lo = rgb(take(3 * lo));
+    let layers = Layers::from_fn(|layer| take(layer.floats(side, factor)).to_vec());
     TrainingSample {
         side,
         factor,
         pose,
         draw,
-        photo,
-        relit,
-        albedo_hi,
-        albedo_lo,
-        normals_lo,
-        mask,
-        diffuse,
-        specular,
+        layers,
     }
 }
 

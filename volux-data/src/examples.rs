@@ -124,7 +124,7 @@ mod tests {
         let made = live.batch(1, 2);
         // Batch 1 of 2 wraps around the 3 cached examples: examples 2 and 0.
         let wrapped = Batch::collate(1, &[live.example(2).unwrap(), live.example(0).unwrap()]);
-        assert_eq!(cached.photo, wrapped.photo);
+        assert_eq!(cached.layers.photo, wrapped.layers.photo);
         assert!(made.is_ok());
         // Another seed: the cache no longer matches.
         let (other, other_hashed) = write(2);

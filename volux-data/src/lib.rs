@@ -15,7 +15,9 @@
 //! - [`light_map_cache`]: light maps cached on disk, keyed by content and options;
 //! - [`light_map_bank`]: the light maps of a whole collection in memory, built in parallel
 //!   through the cache;
-//! - [`training_sample`]: one example with every layer the discriminators see, in the
+//! - [`layers`]: the image layers of an example, described once (channels, resolution,
+//!   range), and `Layers<T>`, one value per layer;
+//!   [`training_sample`]: one example with every layer the discriminators see, in the
 //!   generator's conventions; [`dataset`]: examples and batches as a pure function of their
 //!   index; [`example_cache`]: examples rendered once into a sharded on-disk cache;
 //!   [`examples`]: what training reads, live or from a cache that matches its config;
@@ -36,6 +38,7 @@ pub mod example_cache;
 pub mod examples;
 pub mod folder_dataset;
 pub mod hdri_collection;
+pub mod layers;
 pub mod light_map_bank;
 pub mod light_map_cache;
 pub mod pose_distribution;

@@ -17,6 +17,7 @@ use volux_envmap::random::SplitMix64;
 use volux_envmap::{LightMap, Rgb};
 use volux_model::pose::Pose;
 
+use crate::layers::{Layer, Layers, rgb};
 use crate::relighting::{IntrinsicImage, RelightError, SpecularWeights, relight_weighted};
 use crate::synthetic_head::{self, HeadRender, SyntheticError, SyntheticHead};
 
@@ -63,22 +64,22 @@ pub enum Intrinsics<'a> {
     },
 }
 
-/// All layers of one example, row-major, at `side x side` (high) and
-/// `side / factor` (low) resolution.
+/// All layers of one example at `side x side` (output) and `side / factor` (volume)
+/// resolution: row-major, channels interleaved per pixel ([`crate::layers`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrainingSample {
     pub side: usize,
     pub factor: usize,
     pub pose: Pose,
     pub draw: LightingDraw,
-    pub photo: Vec<Rgb>,
-    pub relit: Vec<Rgb>,
-    pub albedo_hi: Vec<Rgb>,
-    pub albedo_lo: Vec<Rgb>,
-    pub normals_lo: Vec<[f32; 3]>,
-    pub mask: Vec<f32>,
-    pub diffuse: Vec<Rgb>,
-    pub specular: Vec<Rgb>,
+    pub layers: Layers<Vec<f32>>,
+}
+
+impl TrainingSample {
+    /// The pixels of a three-channel layer.
+    pub fn rgb(&self, layer: Layer) -> &[Rgb] {
+        rgb(self.layers.get(layer))
+    }
 }
 
 /// Why a sample cannot be made.
@@ -165,14 +166,16 @@ pub fn make_sample(
         factor,
         pose: image.pose,
         draw,
-        photo,
-        relit: layers.relit,
-        albedo_lo: area_downsample(&albedo_hi, side, factor),
-        albedo_hi,
-        normals_lo: area_downsample(&masked_normals, side, factor),
-        mask: image.mask.clone(),
-        diffuse: layers.diffuse,
-        specular: layers.specular,
+        layers: Layers {
+            photo: photo.into_flattened(),
+            relit: layers.relit.into_flattened(),
+            albedo_lo: area_downsample(&albedo_hi, side, factor).into_flattened(),
+            albedo_hi: albedo_hi.into_flattened(),
+            normals_lo: area_downsample(&masked_normals, side, factor).into_flattened(),
+            mask: image.mask.clone(),
+            diffuse: layers.diffuse.into_flattened(),
+            specular: layers.specular.into_flattened(),
+        },
     })
 }
 
@@ -282,20 +285,24 @@ mod tests {
             .unwrap()
         };
         let (a, b) = (make(&sun, 0.3), make(&grey, 2.0));
-        assert_eq!(a.albedo_hi, b.albedo_hi);
-        assert_eq!(a.albedo_lo, b.albedo_lo);
-        assert_eq!(a.normals_lo, b.normals_lo);
-        assert_eq!(a.mask, b.mask);
-        assert_ne!(a.relit, b.relit);
-        assert_ne!(a.photo, b.photo);
+        let (al, bl) = (&a.layers, &b.layers);
+        assert_eq!(al.albedo_hi, bl.albedo_hi);
+        assert_eq!(al.albedo_lo, bl.albedo_lo);
+        assert_eq!(al.normals_lo, bl.normals_lo);
+        assert_eq!(al.mask, bl.mask);
+        assert_ne!(al.relit, bl.relit);
+        assert_ne!(al.photo, bl.photo);
         // Background pixels carry the background: albedo in linear, relit and photo in sRGB.
         let corner = 0;
-        assert_eq!(a.mask[corner], 0.0);
-        assert!((a.albedo_hi[corner][0] - srgb_to_linear(0.2)).abs() < 1e-7);
-        assert_eq!(a.relit[corner], [0.2; 3]);
-        assert_eq!(a.photo[corner], [0.2; 3]);
-        assert_eq!(a.normals_lo[corner], [0.0; 3]);
-        assert_eq!((a.albedo_lo.len(), a.normals_lo.len()), (256, 256));
+        assert_eq!(al.mask[corner], 0.0);
+        assert!((a.rgb(Layer::AlbedoHi)[corner][0] - srgb_to_linear(0.2)).abs() < 1e-7);
+        assert_eq!(a.rgb(Layer::Relit)[corner], [0.2; 3]);
+        assert_eq!(a.rgb(Layer::Photo)[corner], [0.2; 3]);
+        assert_eq!(a.rgb(Layer::NormalsLo)[corner], [0.0; 3]);
+        assert_eq!(
+            (a.rgb(Layer::AlbedoLo).len(), a.rgb(Layer::NormalsLo).len()),
+            (256, 256)
+        );
     }
 
     #[test]
@@ -333,7 +340,7 @@ mod tests {
         );
         let ok = make_sample(intrinsics(&photo), &lights, draw, [0.0; 3], 3).unwrap();
         // Constant unit environment, facing normals: diffuse 1 everywhere.
-        assert!(ok.diffuse.iter().flatten().all(|d| (d - 1.0).abs() < 2e-3));
-        assert_eq!(ok.albedo_lo.len(), 4);
+        assert!(ok.layers.diffuse.iter().all(|d| (d - 1.0).abs() < 2e-3));
+        assert_eq!(ok.rgb(Layer::AlbedoLo).len(), 4);
     }
 }

@@ -45,9 +45,9 @@ fn empty_sets(side: usize, side_lo: usize) -> [ImageSet; 3] {
 }
 
 fn extend(sets: &mut [ImageSet; 3], batch: &Batch) {
-    sets[0].extend_planar(&batch.albedo_hi);
-    sets[1].extend_planar(&batch.normals_lo);
-    let relit: Vec<f32> = batch.relit.iter().map(|v| 0.5 * (v + 1.0)).collect();
+    sets[0].extend_planar(&batch.layers.albedo_hi);
+    sets[1].extend_planar(&batch.layers.normals_lo);
+    let relit: Vec<f32> = batch.layers.relit.iter().map(|v| 0.5 * (v + 1.0)).collect();
     sets[2].extend_planar(&relit);
 }
 

@@ -8,7 +8,8 @@ use volux_data::synthetic_head::{self, RenderSettings, SyntheticHead};
 use volux_envmap::io::srgb_to_linear;
 use volux_envmap::{LightMap, LightMapSet, Rgb};
 use volux_model::backend::to_f32_vec;
-use volux_model::generator::{Generator, GeneratorWants};
+use volux_model::generated::GeneratorWants;
+use volux_model::generator::Generator;
 use volux_model::pose::Pose;
 use volux_model::relighting::tonemap_srgb;
 use volux_model::upsampler::bilinear_upsample;
@@ -83,9 +84,9 @@ pub fn render_model(
     let out = g.forward(z, poses, Some(&lighting), albedo_bg, wants, None, false)?;
     let f = g.upsampler.factor();
     let need = |t: Option<Tensor<4>>| t.expect("asked for");
-    let (diffuse, specular) = (need(out.diffuse_lo), need(out.specular_lo));
-    let albedo = need(out.albedo_hi);
-    let depth_lo = need(out.depth);
+    let (diffuse, specular) = (need(out.layers.diffuse_lo), need(out.layers.specular_lo));
+    let albedo = need(out.layers.albedo_hi);
+    let depth_lo = need(out.layers.depth);
     let mask = bilinear_upsample(out.opacity.clone(), f).clamp(0.0, 1.0);
     let bg = Tensor::<1>::from_data(TensorData::new(background.to_vec(), [3]), &device)
         .reshape([1, 3, 1, 1]);
@@ -93,7 +94,7 @@ pub fn render_model(
         albedo.clone() * bilinear_upsample(diffuse, f) + bilinear_upsample(specular, f),
     );
     let shaded = core * mask.clone() + (mask.clone().neg().add_scalar(1.0)) * bg;
-    let relit = need(out.relit)
+    let relit = need(out.layers.relit)
         .add_scalar(1.0)
         .mul_scalar(0.5)
         .clamp(0.0, 1.0);
@@ -102,7 +103,7 @@ pub fn render_model(
     let side_lo = side / f;
     let (albedo, relit, shaded) = (pixels::<3>(albedo), pixels::<3>(relit), pixels::<3>(shaded));
     let (depth, mask) = (scalars(depth), scalars(mask));
-    let normals = pixels::<3>(need(out.normals_lo));
+    let normals = pixels::<3>(need(out.layers.normals_lo));
     let (depth_lo, mask_lo) = (scalars(depth_lo), scalars(out.opacity));
     Ok((0..poses.len())
         .map(|i| Rendered {

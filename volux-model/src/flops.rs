@@ -21,7 +21,8 @@
 
 use crate::discriminator::DiscriminatorConfig;
 use crate::field::FieldWants;
-use crate::generator::{GeneratorConfig, GeneratorWants};
+use crate::generated::GeneratorWants;
+use crate::generator::GeneratorConfig;
 use crate::mapping::MappingNetworkConfig;
 use crate::neiif::NeiifConfig;
 use crate::positional_encoding::PositionalEncodingConfig;
@@ -233,8 +234,8 @@ pub fn generator(c: &GeneratorConfig, batch: usize, wants: GeneratorWants) -> Ge
     let side = c.volume_resolution;
     let rays = side * side;
     let r = &c.renderer;
-    let upsample = wants.albedo_hi || wants.relit;
-    let shading = wants.shading_lo || wants.relit;
+    let upsample = wants.needs_upsampler();
+    let shading = wants.needs_shading();
     let field_wants = FieldWants {
         normals: wants.normals_lo || shading,
         appearance: wants.albedo_lo || wants.features_lo || upsample || shading,

@@ -12,6 +12,7 @@ use burn::config::Config;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 
+use crate::generated::{Generated, GeneratorWants};
 use crate::light_lookup::Lighting;
 use crate::mapping::{MappingNetwork, MappingNetworkConfig};
 use crate::neiif::{LatentField, Neiif, NeiifConfig};
@@ -169,69 +170,15 @@ pub struct Generator {
     pub volume_resolution: usize,
 }
 
-/// Which outputs a forward pass must return.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct GeneratorWants {
-    pub albedo_lo: bool,
-    pub normals_lo: bool,
-    /// `D_lo` and `S_lo`.
-    pub shading_lo: bool,
-    pub features_lo: bool,
-    pub depth: bool,
-    pub albedo_hi: bool,
-    pub relit: bool,
-}
-
-impl GeneratorWants {
-    /// Everything.
-    pub const ALL: Self = Self {
-        albedo_lo: true,
-        normals_lo: true,
-        shading_lo: true,
-        features_lo: true,
-        depth: true,
-        albedo_hi: true,
-        relit: true,
-    };
-    /// Stage 1 of the schedule: `L_A` on both albedos, `L_G` on normals, the path loss.
-    pub const STAGE1: Self = Self {
-        albedo_lo: true,
-        normals_lo: true,
-        shading_lo: false,
-        features_lo: false,
-        depth: false,
-        albedo_hi: true,
-        relit: false,
-    };
-
-    fn needs_upsampler(self) -> bool {
-        self.albedo_hi || self.relit
-    }
-
-    fn needs_shading(self) -> bool {
-        self.shading_lo || self.relit
-    }
-}
-
-/// A batch of generated images, `[batch, channels, h, w]`; what was not wanted is `None`.
-/// Low-resolution maps are composited over the background (`A_lo` over `background`, the rest
-/// over 0); normals are in camera space (+z towards the camera).
+/// A batch of generated images; what was not wanted is `None` (see [`crate::generated`] for
+/// each output's shape and range).
 #[derive(Clone, Debug)]
 pub struct GeneratorOutput {
     /// `[batch, w_dim]`.
     pub w: Tensor<2>,
     /// `[batch, 1, h, w]`.
     pub opacity: Tensor<4>,
-    pub depth: Option<Tensor<4>>,
-    pub albedo_lo: Option<Tensor<4>>,
-    pub normals_lo: Option<Tensor<4>>,
-    pub diffuse_lo: Option<Tensor<4>>,
-    pub specular_lo: Option<Tensor<4>>,
-    pub features_lo: Option<Tensor<4>>,
-    /// `[batch, 3, H, W]` in [0, 1] (up to the learned residual).
-    pub albedo_hi: Option<Tensor<4>>,
-    /// `[batch, 3, H, W]`, sRGB mapped to [-1, 1].
-    pub relit: Option<Tensor<4>>,
+    pub layers: Generated<Option<Tensor<4>>>,
 }
 
 /// `[b, rays, c] -> [b, c, side, side]`.
@@ -391,17 +338,20 @@ impl Generator {
             }
             albedo_hi = wants.albedo_hi.then_some(a_hi);
         }
+        let layers = Generated {
+            albedo_lo,
+            normals_lo,
+            diffuse_lo,
+            specular_lo,
+            features_lo,
+            depth,
+            albedo_hi,
+            relit,
+        };
         Ok(GeneratorOutput {
             w,
             opacity,
-            depth,
-            albedo_lo: albedo_lo.filter(|_| wants.albedo_lo),
-            normals_lo,
-            diffuse_lo: diffuse_lo.filter(|_| wants.shading_lo),
-            specular_lo: specular_lo.filter(|_| wants.shading_lo),
-            features_lo: features_lo.filter(|_| wants.features_lo),
-            albedo_hi,
-            relit,
+            layers: layers.wanted(wants),
         })
     }
 

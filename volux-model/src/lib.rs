@@ -5,7 +5,7 @@
 //!   weights, features), volume rendering ([`ray_sampling`], optionally placed by
 //!   density-only [`proposal`] passes, -> [`volume_rendering`] -> [`ray_marching`], with the [`light_lookup`] and [`shading`] for `D` and `S`, per sample or,
 //!   for the paper's surface-relighting ablation, per pixel), the [`upsampler`], the
-//!   [`relighting`] U-Net, all tied together in [`generator`]; [`presets`] sizes the
+//!   [`relighting`] U-Net, all tied together in [`generator`] (its outputs described once in [`generated`]); [`presets`] sizes the
 //!   generator and the discriminators together (`small`, `paper`).
 //! - Discriminators (section 3.4): [`equalized`] layers, StyleGAN2's [`blur`], the residual
 //!   [`discriminator`] with its explicit input gradient and the R1 penalty.
@@ -28,6 +28,7 @@ pub mod fir_filter;
 pub mod flex_extension;
 pub mod flops;
 pub mod fused_activation;
+pub mod generated;
 pub mod generator;
 pub mod light_lookup;
 pub mod mapping;

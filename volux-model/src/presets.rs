@@ -39,6 +39,30 @@ impl DiscriminatorRole {
         Self::Photo,
     ];
 
+    /// The run's name for it: its field in a run's discriminators, the `discriminators` of a
+    /// checkpoint's state, and the suffix of its loss terms.
+    pub const fn key(self) -> &'static str {
+        match self {
+            Self::AlbedoLow => "albedo_lo",
+            Self::AlbedoHigh => "albedo_hi",
+            Self::Geometry => "geometry",
+            Self::Shading => "shading",
+            Self::Photo => "photo",
+        }
+    }
+
+    /// The names its losses are logged under: generator, discriminator, R1 (`G_<key>`,
+    /// `D_<key>`, `R1_<key>`).
+    pub const fn terms(self) -> [&'static str; 3] {
+        match self {
+            Self::AlbedoLow => ["G_albedo_lo", "D_albedo_lo", "R1_albedo_lo"],
+            Self::AlbedoHigh => ["G_albedo_hi", "D_albedo_hi", "R1_albedo_hi"],
+            Self::Geometry => ["G_geometry", "D_geometry", "R1_geometry"],
+            Self::Shading => ["G_shading", "D_shading", "R1_shading"],
+            Self::Photo => ["G_photo", "D_photo", "R1_photo"],
+        }
+    }
+
     /// The paper's name.
     pub fn name(self) -> &'static str {
         match self {

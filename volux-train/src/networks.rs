@@ -47,18 +47,24 @@ impl Discriminators {
         }
     }
 
+    /// The discriminator of `role`, if the run has one.
+    pub fn get(&self, role: DiscriminatorRole) -> Option<&Discriminator> {
+        match role {
+            DiscriminatorRole::AlbedoLow => self.albedo_lo.as_ref(),
+            DiscriminatorRole::AlbedoHigh => self.albedo_hi.as_ref(),
+            DiscriminatorRole::Geometry => self.geometry.as_ref(),
+            DiscriminatorRole::Shading => self.shading.as_ref(),
+            DiscriminatorRole::Photo => self.photo.as_ref(),
+        }
+    }
+
     /// Names of the discriminators that exist (stored in checkpoints).
     pub fn names(&self) -> Vec<&'static str> {
-        [
-            ("albedo_lo", self.albedo_lo.is_some()),
-            ("albedo_hi", self.albedo_hi.is_some()),
-            ("geometry", self.geometry.is_some()),
-            ("shading", self.shading.is_some()),
-            ("photo", self.photo.is_some()),
-        ]
-        .into_iter()
-        .filter_map(|(n, present)| present.then_some(n))
-        .collect()
+        DiscriminatorRole::ALL
+            .into_iter()
+            .filter(|&role| self.get(role).is_some())
+            .map(DiscriminatorRole::key)
+            .collect()
     }
 }
 

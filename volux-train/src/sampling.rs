@@ -7,7 +7,8 @@ use volux_data::contact_sheet::{self, ContactSheet};
 use volux_envmap::random::SplitMix64;
 use volux_envmap::{LightMapSet, Rgb};
 use volux_model::backend::to_f32_vec;
-use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
+use volux_model::generated::GeneratorWants;
+use volux_model::generator::{Generator, GeneratorError};
 use volux_model::light_lookup::Lighting;
 use volux_model::light_lookup::{LightingTensorError, lighting_tensors};
 use volux_model::pose::Pose;
@@ -120,12 +121,12 @@ pub fn render_layers(
     let need = |t: Option<Tensor<4>>| t.expect("asked for");
     Ok(SampleLayers {
         side: g.output_resolution(),
-        albedo: rgb(need(out.albedo_hi), 1),
-        normals: rgb(need(out.normals_lo), f),
-        diffuse: rgb(need(out.diffuse_lo), f),
-        specular: rgb(need(out.specular_lo), f),
-        relit: rgb(need(out.relit).add_scalar(1.0).mul_scalar(0.5), 1),
-        depth: grey(need(out.depth), f),
+        albedo: rgb(need(out.layers.albedo_hi), 1),
+        normals: rgb(need(out.layers.normals_lo), f),
+        diffuse: rgb(need(out.layers.diffuse_lo), f),
+        specular: rgb(need(out.layers.specular_lo), f),
+        relit: rgb(need(out.layers.relit).add_scalar(1.0).mul_scalar(0.5), 1),
+        depth: grey(need(out.layers.depth), f),
         opacity: grey(out.opacity, f),
     })
 }

@@ -19,7 +19,8 @@ use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::Tensor;
 use volux_data::batch::BatchTensors;
 use volux_model::discriminator::Discriminator;
-use volux_model::generator::{Generator, GeneratorError, GeneratorWants};
+use volux_model::generated::GeneratorWants;
+use volux_model::generator::{Generator, GeneratorError};
 use volux_model::light_lookup::Lighting;
 use volux_model::pose::Pose;
 use volux_model::presets::DiscriminatorRole;
@@ -98,14 +99,9 @@ impl Fakes {
     }
 }
 
-/// The names a term's losses are logged under: generator, discriminator, R1.
+/// The names a term's losses are logged under: generator, discriminator, R1
+/// ([`DiscriminatorRole::terms`]).
 type TermNames = [&'static str; 3];
-
-const ALBEDO_LO: TermNames = ["G_albedo_lo", "D_albedo_lo", "R1_albedo_lo"];
-const ALBEDO_HI: TermNames = ["G_albedo_hi", "D_albedo_hi", "R1_albedo_hi"];
-const GEOMETRY: TermNames = ["G_geometry", "D_geometry", "R1_geometry"];
-const SHADING: TermNames = ["G_shading", "D_shading", "R1_shading"];
-const PHOTO: TermNames = ["G_photo", "D_photo", "R1_photo"];
 
 /// An active discriminator with what it judges: `(names, role, D, fake, real, weight)`.
 type Pair<'a> = (
@@ -142,41 +138,31 @@ fn pairs<'a>(
         .map(|a| faded_input(a.clone(), fade));
     let entries = [
         (
-            ALBEDO_LO,
             DiscriminatorRole::AlbedoLow,
-            &d.albedo_lo,
             &fakes.albedo_lo,
             reals.map(|r| r.albedo_lo.clone()),
             w.albedo,
         ),
         (
-            ALBEDO_HI,
             DiscriminatorRole::AlbedoHigh,
-            &d.albedo_hi,
             &fake_albedo_hi,
             reals.map(|r| faded_input(r.albedo_hi.clone(), fade)),
             w.albedo,
         ),
         (
-            GEOMETRY,
             DiscriminatorRole::Geometry,
-            &d.geometry,
             &fakes.normals,
             reals.map(|r| r.normals_lo.clone()),
             w.geometry,
         ),
         (
-            SHADING,
             DiscriminatorRole::Shading,
-            &d.shading,
             &fakes.shading,
             real_shading,
             w.shading,
         ),
         (
-            PHOTO,
             DiscriminatorRole::Photo,
-            &d.photo,
             &fakes.relit,
             reals.map(|r| r.photo.clone()),
             w.photo,
@@ -184,8 +170,15 @@ fn pairs<'a>(
     ];
     entries
         .into_iter()
-        .filter_map(|(name, role, d, fake, real, weight)| {
-            Some((name, role, d.as_ref()?, fake.clone()?, real, weight))
+        .filter_map(|(role, fake, real, weight)| {
+            Some((
+                role.terms(),
+                role,
+                d.get(role)?,
+                fake.clone()?,
+                real,
+                weight,
+            ))
         })
         .collect()
 }
@@ -209,7 +202,8 @@ pub fn generator_wants(a: ActiveTerms) -> GeneratorWants {
     GeneratorWants {
         albedo_lo: albedo,
         normals_lo: a.geometry,
-        shading_lo: a.shading,
+        diffuse_lo: a.shading,
+        specular_lo: a.shading,
         features_lo: false,
         depth: false,
         albedo_hi: albedo,
@@ -233,22 +227,27 @@ fn generate(
         inputs.fade.as_deref(),
         true,
     )?;
-    let path = match (a.path, &out.albedo_lo, &out.albedo_hi) {
+    let path = match (a.path, &out.layers.albedo_lo, &out.layers.albedo_hi) {
         (true, Some(lo), Some(hi)) => Some(path_loss(lo.clone(), hi.clone())),
         _ => None,
     };
-    let shading = match (a.shading, &out.relit, &out.diffuse_lo, &out.specular_lo) {
+    let shading = match (
+        a.shading,
+        &out.layers.relit,
+        &out.layers.diffuse_lo,
+        &out.layers.specular_lo,
+    ) {
         (true, Some(relit), Some(d), Some(s)) => {
             Some(shading_condition_lo(relit.clone(), d.clone(), s.clone()))
         }
         _ => None,
     };
     let fakes = Fakes {
-        albedo_lo: out.albedo_lo.filter(|_| a.albedo),
-        albedo_hi: out.albedo_hi.filter(|_| a.albedo),
-        normals: out.normals_lo,
+        albedo_lo: out.layers.albedo_lo.filter(|_| a.albedo),
+        albedo_hi: out.layers.albedo_hi.filter(|_| a.albedo),
+        normals: out.layers.normals_lo,
         shading,
-        relit: out.relit.filter(|_| a.photo),
+        relit: out.layers.relit.filter(|_| a.photo),
     };
     Ok((fakes, path))
 }

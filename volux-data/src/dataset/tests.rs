@@ -3,6 +3,7 @@ use volux_model::pose::Pose;
 use super::*;
 use std::path::Path;
 
+use crate::layers::Layer;
 use crate::relighting::DEFAULT_SPECULAR_WEIGHTS;
 use volux_envmap::error::chain;
 use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
@@ -138,8 +139,8 @@ fn examples_are_a_pure_function_of_their_index() {
     )
     .unwrap();
     assert_ne!(
-        other.example(6).unwrap().photo,
-        data.example(6).unwrap().photo
+        other.example(6).unwrap().layers.photo,
+        data.example(6).unwrap().layers.photo
     );
     // Draws cover the bank and the full turn.
     let draws: Vec<LightingDraw> = (0..64).map(|i| data.example(i).unwrap().draw).collect();
@@ -219,13 +220,17 @@ fn folder_photos_with_masks_are_composited_over_the_background_like_the_relit_im
         } else {
             [1.0, 0.0, 0.0]
         };
-        let got = example.photo[i];
+        let got = example.rgb(Layer::Photo)[i];
         assert!(
             (0..3).all(|k| (got[k] - want[k]).abs() < 3e-3),
             "pixel {i}: {got:?}"
         );
         if m == 0.0 {
-            assert_eq!(example.relit[i], example.photo[i], "pixel {i}");
+            assert_eq!(
+                example.rgb(Layer::Relit)[i],
+                example.rgb(Layer::Photo)[i],
+                "pixel {i}"
+            );
         }
     }
     // Without mask files (the mask then comes from the normals' length) the photo keeps
@@ -237,7 +242,7 @@ fn folder_photos_with_masks_are_composited_over_the_background_like_the_relit_im
         .unwrap();
     assert!(
         example
-            .photo
+            .rgb(Layer::Photo)
             .iter()
             .all(|p| (0..3).all(|k| (p[k] - [0.2, 0.6, 0.4][k]).abs() < 3e-3))
     );
@@ -257,7 +262,7 @@ fn the_documented_config_parses() {
 #[test]
 fn batches_match_what_the_small_generator_makes() {
     use burn::tensor::{Device, Distribution, Tensor};
-    use volux_model::generator::GeneratorWants;
+    use volux_model::generated::GeneratorWants;
     use volux_model::presets::Preset;
     let g_config = Preset::Small.generator();
     let config: DataConfig = toml::from_str(&format!(
@@ -289,14 +294,17 @@ fn batches_match_what_the_small_generator_makes() {
             false,
         )
         .unwrap();
-    assert_eq!(fake.albedo_hi.unwrap().dims(), real.albedo_hi.dims());
-    assert_eq!(fake.albedo_lo.unwrap().dims(), real.albedo_lo.dims());
-    assert_eq!(fake.normals_lo.unwrap().dims(), real.normals_lo.dims());
-    assert_eq!(fake.relit.unwrap().dims(), real.relit.dims());
+    assert_eq!(fake.layers.albedo_hi.unwrap().dims(), real.albedo_hi.dims());
+    assert_eq!(fake.layers.albedo_lo.unwrap().dims(), real.albedo_lo.dims());
+    assert_eq!(
+        fake.layers.normals_lo.unwrap().dims(),
+        real.normals_lo.dims()
+    );
+    assert_eq!(fake.layers.relit.unwrap().dims(), real.relit.dims());
     let lo = g_config.volume_resolution;
     assert_eq!(fake.opacity.dims(), [2, 1, lo, lo]);
     assert_eq!(
-        fake.diffuse_lo.unwrap().dims()[..2],
+        fake.layers.diffuse_lo.unwrap().dims()[..2],
         real.diffuse.dims()[..2]
     );
     // A draw naming a missing environment is an error, not a panic.

@@ -67,11 +67,7 @@ fn a_built_cache_returns_the_datasets_examples() {
         assert!((cached.pose.yaw - live.pose.yaw).abs() < 1e-6);
         assert!((cached.draw.yaw - live.draw.yaw).abs() < 1e-6);
         assert_eq!(cached.draw.map, live.draw.map);
-        assert_eq!(
-            (cached.photo, cached.normals_lo),
-            (live.photo, live.normals_lo)
-        );
-        assert_eq!((cached.diffuse, cached.mask), (live.diffuse, live.mask));
+        assert_eq!(cached.layers, live.layers);
     }
     assert!(matches!(
         cache.example(5),
@@ -107,8 +103,8 @@ fn reruns_redo_only_what_changed_and_interrupted_builds_resume() {
     assert_eq!((resumed.built, resumed.kept), (2, 1));
     let cache = ExampleCache::open(dir.path()).unwrap();
     assert_eq!(
-        cache.example(4).unwrap().photo,
-        data.example(4).unwrap().photo
+        cache.example(4).unwrap().layers.photo,
+        data.example(4).unwrap().layers.photo
     );
     // A different dataset (fingerprint): everything is rebuilt.
     let other = dataset(2);
@@ -116,8 +112,8 @@ fn reruns_redo_only_what_changed_and_interrupted_builds_resume() {
     assert_eq!((changed.built, changed.kept), (3, 0));
     let cache = ExampleCache::open(dir.path()).unwrap();
     assert_eq!(
-        cache.example(1).unwrap().photo,
-        other.example(1).unwrap().photo
+        cache.example(1).unwrap().layers.photo,
+        other.example(1).unwrap().layers.photo
     );
     // No temporary files are left behind.
     let stray = fs::read_dir(dir.path())

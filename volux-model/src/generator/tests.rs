@@ -96,21 +96,24 @@ fn small_preset_gives_every_output_and_a_full_backward_pass() {
         .unwrap();
     assert_eq!(out.opacity.dims(), [2, 1, 32, 32]);
     for (name, t, c) in [
-        ("A_lo", &out.albedo_lo, 3),
-        ("N_lo", &out.normals_lo, 3),
-        ("D_lo", &out.diffuse_lo, 3),
-        ("S_lo", &out.specular_lo, 3),
-        ("F_lo", &out.features_lo, 64),
-        ("depth", &out.depth, 1),
+        ("A_lo", &out.layers.albedo_lo, 3),
+        ("N_lo", &out.layers.normals_lo, 3),
+        ("D_lo", &out.layers.diffuse_lo, 3),
+        ("S_lo", &out.layers.specular_lo, 3),
+        ("F_lo", &out.layers.features_lo, 64),
+        ("depth", &out.layers.depth, 1),
     ] {
         assert_eq!(t.as_ref().unwrap().dims(), [2, c, 32, 32], "{name}");
     }
-    assert_eq!(out.albedo_hi.as_ref().unwrap().dims(), [2, 3, 64, 64]);
-    assert_eq!(out.relit.as_ref().unwrap().dims(), [2, 3, 64, 64]);
-    let loss = out.relit.unwrap().mean()
-        + out.albedo_lo.unwrap().mean()
-        + out.normals_lo.unwrap().mean()
-        + out.albedo_hi.unwrap().mean();
+    assert_eq!(
+        out.layers.albedo_hi.as_ref().unwrap().dims(),
+        [2, 3, 64, 64]
+    );
+    assert_eq!(out.layers.relit.as_ref().unwrap().dims(), [2, 3, 64, 64]);
+    let loss = out.layers.relit.unwrap().mean()
+        + out.layers.albedo_lo.unwrap().mean()
+        + out.layers.normals_lo.unwrap().mean()
+        + out.layers.albedo_hi.unwrap().mean();
     let v: f32 = loss.clone().into_scalar();
     assert!(v.is_finite());
     check_grads(
@@ -136,8 +139,10 @@ fn stage_one_runs_without_lighting_or_relighting() {
             true,
         )
         .unwrap();
-    assert!(out.relit.is_none() && out.diffuse_lo.is_none() && out.depth.is_none());
-    let loss = out.albedo_hi.unwrap().mean() + out.normals_lo.unwrap().mean();
+    assert!(
+        out.layers.relit.is_none() && out.layers.diffuse_lo.is_none() && out.layers.depth.is_none()
+    );
+    let loss = out.layers.albedo_hi.unwrap().mean() + out.layers.normals_lo.unwrap().mean();
     check_grads(&g, &loss.backward(), &["mapping", "neiif", "upsampler"]);
 }
 
