@@ -30,6 +30,40 @@ pub enum DiscriminatorRole {
     Photo,
 }
 
+/// One value per discriminator role (what each sees, each one's weight, ...).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ByRole<T> {
+    pub albedo_lo: T,
+    pub albedo_hi: T,
+    pub geometry: T,
+    pub shading: T,
+    pub photo: T,
+}
+
+impl<T> ByRole<T> {
+    /// The value of `role`.
+    pub fn get(&self, role: DiscriminatorRole) -> &T {
+        match role {
+            DiscriminatorRole::AlbedoLow => &self.albedo_lo,
+            DiscriminatorRole::AlbedoHigh => &self.albedo_hi,
+            DiscriminatorRole::Geometry => &self.geometry,
+            DiscriminatorRole::Shading => &self.shading,
+            DiscriminatorRole::Photo => &self.photo,
+        }
+    }
+
+    /// `f` of every role's value, in the order of [`DiscriminatorRole::ALL`].
+    pub fn map<U>(&self, mut f: impl FnMut(DiscriminatorRole, &T) -> U) -> ByRole<U> {
+        ByRole {
+            albedo_lo: f(DiscriminatorRole::AlbedoLow, &self.albedo_lo),
+            albedo_hi: f(DiscriminatorRole::AlbedoHigh, &self.albedo_hi),
+            geometry: f(DiscriminatorRole::Geometry, &self.geometry),
+            shading: f(DiscriminatorRole::Shading, &self.shading),
+            photo: f(DiscriminatorRole::Photo, &self.photo),
+        }
+    }
+}
+
 impl DiscriminatorRole {
     pub const ALL: [Self; 5] = [
         Self::AlbedoLow,

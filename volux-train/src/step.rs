@@ -23,7 +23,7 @@ use volux_model::generated::GeneratorWants;
 use volux_model::generator::{Generator, GeneratorError};
 use volux_model::light_lookup::Lighting;
 use volux_model::pose::Pose;
-use volux_model::presets::DiscriminatorRole;
+use volux_model::presets::{ByRole, DiscriminatorRole};
 use volux_model::profile::{self, Phase as ProfilePhase};
 
 use crate::losses::{
@@ -77,26 +77,13 @@ pub struct StepOutcome {
     pub skipped: Option<String>,
 }
 
-/// The generated layers the discriminators look at.
-struct Fakes {
-    albedo_lo: Option<Tensor<4>>,
-    albedo_hi: Option<Tensor<4>>,
-    normals: Option<Tensor<4>>,
-    shading: Option<Tensor<4>>,
-    relit: Option<Tensor<4>>,
-}
+/// The generated images each discriminator looks at (`geometry`: the normals, `shading`:
+/// `[I_relit, D, S]`, `photo`: the relit image); `None` where its term is inactive.
+type Fakes = ByRole<Option<Tensor<4>>>;
 
-impl Fakes {
-    fn detach(&self) -> Fakes {
-        let d = |t: &Option<Tensor<4>>| t.as_ref().map(|t| t.clone().detach());
-        Fakes {
-            albedo_lo: d(&self.albedo_lo),
-            albedo_hi: d(&self.albedo_hi),
-            normals: d(&self.normals),
-            shading: d(&self.shading),
-            relit: d(&self.relit),
-        }
-    }
+/// The fakes cut from the generator's graph (the discriminator step).
+fn detached(fakes: &Fakes) -> Fakes {
+    fakes.map(|_, t| t.as_ref().map(|t| t.clone().detach()))
 }
 
 /// The names a term's losses are logged under: generator, discriminator, R1
@@ -132,38 +119,37 @@ fn pairs<'a>(
             factor,
         )
     });
-    let fake_albedo_hi = fakes
-        .albedo_hi
-        .as_ref()
-        .map(|a| faded_input(a.clone(), fade));
     let entries = [
         (
             DiscriminatorRole::AlbedoLow,
-            &fakes.albedo_lo,
+            fakes.albedo_lo.clone(),
             reals.map(|r| r.albedo_lo.clone()),
             w.albedo,
         ),
         (
             DiscriminatorRole::AlbedoHigh,
-            &fake_albedo_hi,
+            fakes
+                .albedo_hi
+                .as_ref()
+                .map(|a| faded_input(a.clone(), fade)),
             reals.map(|r| faded_input(r.albedo_hi.clone(), fade)),
             w.albedo,
         ),
         (
             DiscriminatorRole::Geometry,
-            &fakes.normals,
+            fakes.geometry.clone(),
             reals.map(|r| r.normals_lo.clone()),
             w.geometry,
         ),
         (
             DiscriminatorRole::Shading,
-            &fakes.shading,
+            fakes.shading.clone(),
             real_shading,
             w.shading,
         ),
         (
             DiscriminatorRole::Photo,
-            &fakes.relit,
+            fakes.photo.clone(),
             reals.map(|r| r.photo.clone()),
             w.photo,
         ),
@@ -171,14 +157,7 @@ fn pairs<'a>(
     entries
         .into_iter()
         .filter_map(|(role, fake, real, weight)| {
-            Some((
-                role.terms(),
-                role,
-                d.get(role)?,
-                fake.clone()?,
-                real,
-                weight,
-            ))
+            Some((role.terms(), role, d.get(role)?, fake?, real, weight))
         })
         .collect()
 }
@@ -245,9 +224,9 @@ fn generate(
     let fakes = Fakes {
         albedo_lo: out.layers.albedo_lo.filter(|_| a.albedo),
         albedo_hi: out.layers.albedo_hi.filter(|_| a.albedo),
-        normals: out.layers.normals_lo,
+        geometry: out.layers.normals_lo,
         shading,
-        relit: out.layers.relit.filter(|_| a.photo),
+        photo: out.layers.relit.filter(|_| a.photo),
     };
     Ok((fakes, path))
 }
@@ -342,7 +321,7 @@ pub fn train_step(
 
     // Discriminator phase on the same fakes, detached.
     let _d_step = profile::span(ProfilePhase::DiscriminatorStep);
-    let fakes = fakes.detach();
+    let fakes = detached(&fakes);
     let mut d_loss: Option<Tensor<1>> = None;
     for ([_, d_name, r1_name], _, disc, fake, real, weight) in
         pairs(d, &fakes, Some(inputs.reals), &w, fade)
@@ -430,9 +409,9 @@ mod tests {
         let fakes = Fakes {
             albedo_lo: Some(random(3, 32)),
             albedo_hi: Some(fake_hi.clone()),
-            normals: Some(random(3, 32)),
+            geometry: Some(random(3, 32)),
             shading: Some(random(9, 64)),
-            relit: Some(random(3, 64)),
+            photo: Some(random(3, 64)),
         };
         let same = |a: &Tensor<4>, b: Tensor<4>| to_f32_vec(a.clone()) == to_f32_vec(b);
         let find = |pairs: &[Pair], role| {
