@@ -512,6 +512,7 @@ mod write;
 
 pub use error::FolderError;
 use error::name_list;
+pub use poses::parse_poses;
 use poses::read_poses;
 use volux_model::pose::Pose;
 pub use write::write_dataset;

@@ -293,13 +293,18 @@ pub fn save(
 pub fn read_state(dir: &Path) -> Result<TrainState, CheckpointError> {
     let p = dir.join(STATE);
     let text = fs::read_to_string(&p).map_err(|e| file_error(&p, e))?;
-    let state: TrainState = toml::from_str(&text).map_err(|source| CheckpointError::ReadState {
-        path: p.clone(),
+    parse_state(&text, &p)
+}
+
+/// Checks the text of a `state.toml` (read from `path`): its fields and its format version.
+pub fn parse_state(text: &str, path: &Path) -> Result<TrainState, CheckpointError> {
+    let state: TrainState = toml::from_str(text).map_err(|source| CheckpointError::ReadState {
+        path: path.to_path_buf(),
         source,
     })?;
     if state.format != CHECKPOINT_FORMAT {
         return Err(CheckpointError::Format {
-            path: p,
+            path: path.to_path_buf(),
             found: state.format,
         });
     }

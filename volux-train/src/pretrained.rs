@@ -81,11 +81,7 @@ impl ShippedModel {
     /// Parses the embedded state and loads the embedded EMA generator.
     pub fn load(&self, backend: BackendKind) -> Result<TrainedGenerator, TrainError> {
         let origin = PathBuf::from(self.folder);
-        let state: TrainState =
-            toml::from_str(self.state).map_err(|source| CheckpointError::ReadState {
-                path: origin.join(checkpoint::STATE),
-                source,
-            })?;
+        let state = checkpoint::parse_state(self.state, &origin.join(checkpoint::STATE))?;
         let weights = origin.join(checkpoint::GENERATOR_EMA);
         TrainedGenerator::build(state, origin, backend, |g| {
             checkpoint::load_ema_bytes(&weights, self.generator_ema, g)

@@ -17,7 +17,17 @@ pub(super) fn read_poses(
         path: path.to_path_buf(),
         source,
     })?;
-    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
+    parse_poses(&text, path, photos)
+}
+
+/// Checks the text of a `poses.csv` (read from `path`) against the photos it must cover, the
+/// way opening a folder dataset does.
+pub fn parse_poses<V>(
+    text: &str,
+    path: &Path,
+    photos: &BTreeMap<String, V>,
+) -> Result<BTreeMap<String, Pose>, FolderError> {
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let mut lines = text
         .lines()
         .enumerate()
