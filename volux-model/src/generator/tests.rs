@@ -272,7 +272,7 @@ fn wgpu_generator_agrees_with_flex() {
     let gpu = crate::backend::BackendKind::Wgpu.device().unwrap();
     let g = tiny.init(&flex).unwrap();
     let z = Tensor::<2>::random([2, 8], Distribution::Normal(0.0, 1.0), &flex);
-    let poses = [(0.0, 0.0), (0.3, 0.1)];
+    let poses = [Pose::new(0.0, 0.0), Pose::new(0.3, 0.1)];
     let run = |g: &Generator, z: Tensor<2>, device: &Device| {
         let out = g
             .forward(
@@ -286,12 +286,12 @@ fn wgpu_generator_agrees_with_flex() {
             )
             .unwrap();
         [
-            out.albedo_lo.unwrap(),
-            out.normals_lo.unwrap(),
-            out.diffuse_lo.unwrap(),
-            out.specular_lo.unwrap(),
-            out.albedo_hi.unwrap(),
-            out.relit.unwrap(),
+            out.layers.albedo_lo.unwrap(),
+            out.layers.normals_lo.unwrap(),
+            out.layers.diffuse_lo.unwrap(),
+            out.layers.specular_lo.unwrap(),
+            out.layers.albedo_hi.unwrap(),
+            out.layers.relit.unwrap(),
         ]
     };
     let cpu = run(&g, z.clone(), &flex);
