@@ -15,7 +15,7 @@ use volux_envmap::LightMapSet;
 use volux_model::light_lookup::{Lighting, LightingTensorError, lighting_tensors};
 use volux_model::pose::Pose;
 
-use crate::layers::{Layers, Scale};
+use crate::layers::Layers;
 use crate::training_sample::{LightingDraw, TrainingSample};
 
 /// One batch on the host, planar `[batch, channels, h, w]` arrays.
@@ -60,14 +60,13 @@ impl Batch {
         );
         let layers = Layers::from_fn(|layer| {
             let mut planes = Vec::with_capacity(samples.len() * layer.floats(side, factor));
-            let to_signed = |v: f32| v * 2.0 - 1.0;
+            let map: fn(f32) -> f32 = if layer.is_srgb() {
+                |v| v * 2.0 - 1.0
+            } else {
+                |v| v
+            };
             for s in samples {
-                let (values, c) = (s.layers.get(layer), layer.channels());
-                if layer.is_srgb() {
-                    push_planar(&mut planes, values, c, to_signed);
-                } else {
-                    push_planar(&mut planes, values, c, |v| v);
-                }
+                push_planar(&mut planes, s.layers.get(layer), layer.channels(), map);
             }
             planes
         });
@@ -103,11 +102,9 @@ impl Batch {
 
     /// The batch on `device`.
     pub fn to_tensors(&self, device: &Device) -> BatchTensors {
+        let factor = self.side / self.side_lo;
         self.layers.map(|layer, values| {
-            let s = match layer.scale() {
-                Scale::Output => self.side,
-                Scale::Volume => self.side_lo,
-            };
+            let s = layer.side(self.side, factor);
             let shape = [self.size, layer.channels(), s, s];
             Tensor::<4>::from_data(TensorData::new(values.clone(), shape), device)
         })

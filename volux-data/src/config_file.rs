@@ -5,8 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-/// A cause carried by [`ConfigFileError::Table`].
-pub type BoxError = Box<dyn std::error::Error + Send + Sync>;
+pub use volux_envmap::error::BoxError;
 
 /// Why a config file cannot be read or used.
 #[derive(Debug, thiserror::Error)]
@@ -58,4 +57,29 @@ pub fn parse<T: serde::de::DeserializeOwned>(
         path: path.to_path_buf(),
         source,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use volux_envmap::error::chain;
+
+    #[test]
+    fn the_file_is_named_once_and_the_cause_is_kept_not_copied() {
+        let path = Path::new("dir/run.toml");
+        let e = parse::<toml::Table>("[data\nseed = 1", path).unwrap_err();
+        let ConfigFileError::Toml { source, .. } = &e else {
+            panic!("{e:?}");
+        };
+        // The message names the file; the parser's words are the cause, printed once.
+        assert_eq!(e.to_string(), "dir/run.toml");
+        let printed = chain(&e);
+        assert!(printed.starts_with("dir/run.toml: "), "{printed}");
+        assert_eq!(printed.matches(&source.to_string()).count(), 1, "{printed}");
+        let e = read(Path::new("no/such/run.toml")).unwrap_err();
+        assert!(
+            matches!(&e, ConfigFileError::Read { source, .. } if source.kind() == std::io::ErrorKind::NotFound)
+        );
+        assert!(chain(&e).starts_with("no/such/run.toml: "), "{}", chain(&e));
+    }
 }

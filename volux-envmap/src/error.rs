@@ -3,7 +3,8 @@
 
 use std::path::PathBuf;
 
-/// The cause an image codec gives (the OpenEXR and `image` crates' errors).
+/// A cause of any error type (an image codec's, a config table's, an evaluation's): the one
+/// boxed error every crate uses.
 pub type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
 /// What went wrong reading, validating, writing or convolving an environment map.

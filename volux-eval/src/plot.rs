@@ -45,7 +45,7 @@ pub enum PlotError {
     #[error("the shipped font could not be loaded")]
     Font,
     #[error("drawing the plot")]
-    Draw(#[source] Box<dyn std::error::Error + Send + Sync>),
+    Draw(#[source] volux_envmap::error::BoxError),
     #[error("creating {}", path.display())]
     CreateDir {
         path: PathBuf,

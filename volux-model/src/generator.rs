@@ -336,7 +336,7 @@ impl Generator {
                             .forward(a_hi.clone(), d_up, s_up, hi.narrow(1, 3, c - 3)),
                     );
             }
-            albedo_hi = wants.albedo_hi.then_some(a_hi);
+            albedo_hi = Some(a_hi);
         }
         let layers = Generated {
             albedo_lo,

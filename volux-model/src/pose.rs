@@ -35,13 +35,6 @@ impl Pose {
     }
 }
 
-impl std::fmt::Display for Pose {
-    /// `yaw 0.300, pitch -0.100 rad`.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "yaw {:.3}, pitch {:.3} rad", self.yaw, self.pitch)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -53,9 +46,5 @@ mod tests {
         assert!((p.pitch + std::f64::consts::FRAC_PI_4).abs() < 1e-15);
         assert_eq!(Pose::FRONTAL, Pose::new(0.0, 0.0));
         assert!(!Pose::new(f64::NAN, 0.0).is_finite());
-        assert_eq!(
-            Pose::new(0.3, -0.1).to_string(),
-            "yaw 0.300, pitch -0.100 rad"
-        );
     }
 }

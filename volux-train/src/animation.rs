@@ -65,6 +65,16 @@ mod tests {
     use std::fs::File;
 
     #[test]
+    fn a_gif_that_cannot_be_written_is_an_error_and_leaves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("missing").join("a.gif");
+        let e = save_gif(&path, 2, 2, &[vec![[0, 0, 0]; 4]], 50).unwrap_err();
+        assert!(matches!(e, AnimationError::File(_)), "{e:?}");
+        assert!(volux_envmap::error::chain(&e).contains("missing"), "{e}");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
     fn a_gif_holds_every_frame() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("a.gif");

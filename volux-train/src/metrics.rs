@@ -11,7 +11,7 @@ use serde::Serialize;
 use volux_model::generator::Generator;
 
 /// An error of a [`ProgressEvaluator`], kept whole for the chain of causes.
-pub type BoxError = Box<dyn std::error::Error + Send + Sync + 'static>;
+pub use volux_envmap::error::BoxError;
 
 /// A measurement of the EMA generator taken during training, every `[output] eval_kimg`
 /// thousand images (volux-eval's progress evaluation implements it; training only calls it).

@@ -120,6 +120,27 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_shipped_state_of_another_checkpoint_format_is_refused_naming_its_file() {
+        for model in SHIPPED {
+            let path = Path::new(model.folder).join(checkpoint::STATE);
+            let state = checkpoint::parse_state(model.state, &path).unwrap();
+            assert_eq!(state.format, checkpoint::CHECKPOINT_FORMAT);
+            let other = model.state.replacen(
+                &format!("format = {}", state.format),
+                &format!("format = {}", state.format + 1),
+                1,
+            );
+            assert_ne!(other, model.state, "the state names its format");
+            let e = checkpoint::parse_state(&other, &path).unwrap_err();
+            assert!(
+                matches!(e, CheckpointError::Format { found, .. } if found == state.format + 1),
+                "{e}"
+            );
+            assert!(e.to_string().contains("state.toml"), "{e}");
+        }
+    }
+
+    #[test]
     fn every_shipped_model_loads_with_finite_weights_and_its_config() {
         for model in SHIPPED {
             let t = model.load(BackendKind::Cpu).unwrap();

@@ -6,7 +6,14 @@ fn headers_that_claim_huge_images_are_refused_before_allocating() {
     let mut bytes = b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y 100000 +X 200000\n".to_vec();
     bytes.extend([0u8; 64]);
     std::fs::write(&hdr, bytes).unwrap();
-    let e = super::read_raw(&hdr).unwrap_err().to_string();
+    let err = super::read_raw(&hdr).unwrap_err();
+    // The decoder's own limit, with its error kept as the cause.
+    assert!(
+        matches!(err, crate::EnvMapError::DecodeLimit { .. })
+            && std::error::Error::source(&err).is_some(),
+        "{err:?}"
+    );
+    let e = err.to_string();
     assert!(e.contains("huge.hdr") && e.contains("at most"), "{e}");
     // OpenEXR: a real 2x1 file whose data window is patched to 2e8 x 1 texels (one line,
     // so the chunk table still matches; 2.4 GB as f32, past the limit).
