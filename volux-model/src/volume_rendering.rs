@@ -11,12 +11,12 @@
 //! then weighs its own values where the passes left them (no gathering of every channel into
 //! depth order). With `proposal > 0` the importance samples are placed by density-only
 //! passes instead ([`crate::proposal`]), whose samples join the compositing weights and lend
-//! them to the nearest full sample's values. What is not asked for is not computed: no light-map look-ups without shading, no
+//! them to the two full samples around them (interpolated in depth). What is not asked for is not computed: no light-map look-ups without shading, no
 //! density-gradient sweep without normals or shading, no field head without albedo, features or
 //! shading. Like EG3D's renderer this file knows the field only through [`Field`].
 
 use burn::config::Config;
-use burn::tensor::{IndexingUpdateOp, Tensor};
+use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 
 use crate::field::{Field, FieldWants};
 use crate::light_lookup::Lighting;
@@ -40,7 +40,7 @@ pub struct RendererConfig {
     pub importance: usize,
     /// Density-only samples per ray that place the importance samples
     /// ([`crate::proposal`]); their densities join the compositing weights, their weights go
-    /// to the nearest full sample's values. 0: EG3D's scheme, the importance samples are
+    /// to the two full samples around them. 0: EG3D's scheme, the importance samples are
     /// drawn from the stratified samples' weights. Needs `importance > 0`.
     #[config(default = 0)]
     pub proposal: usize,
@@ -212,6 +212,16 @@ fn concat(a: Samples, b: Samples) -> Samples {
     }
 }
 
+/// Whose values each entry of the quadrature carries (see [`render`]). One value per render:
+/// the size difference of the variants costs nothing.
+#[allow(clippy::large_enum_variant)]
+enum Owners {
+    /// Every entry is a composited sample: the index of each in the samples' order.
+    Own(Tensor<2, Int>),
+    /// Density-only entries among them lend their weight ([`proposal::lend`]).
+    Lent(proposal::Lending),
+}
+
 /// Renders rays `origins, dirs: [batch, rays, 3]` (unit directions) through `field`. `jitter`
 /// randomises sample positions (training); without it, sampling is deterministic.
 pub fn render(
@@ -269,20 +279,28 @@ pub fn render(
     };
     let s = samples.t.dims()[1];
     // The quadrature runs over the composited samples, joined by the density-only ones when a
-    // proposal placed them, in depth order; `owner` is, for each entry in that order, the
-    // composited sample (its index in `samples`) whose values it carries: itself, or for a
-    // density-only entry the nearest composited sample.
-    let (t_all, sigma_all, owner) = match proposed {
+    // proposal placed them, in depth order. `Owners` says, for each entry in that order, which
+    // composited samples (their indices in `samples`) carry its values: itself, or for a
+    // density-only entry the two around it, interpolated in depth.
+    let (t_all, sigma_all, owners) = match proposed {
         Some(p) => {
             let (t, order) = Tensor::cat(vec![samples.t.clone(), p.t], 1).sort_with_indices(1);
-            let sigma = Tensor::cat(vec![samples.sigma.clone(), p.sigma], 1).gather(1, order);
-            let owner = proposal::nearest(t.clone(), samples.t.clone());
-            (t, sigma, owner)
+            let sigma =
+                Tensor::cat(vec![samples.sigma.clone(), p.sigma], 1).gather(1, order.clone());
+            let lending = proposal::lend(t.clone(), samples.t.clone());
+            let density_only = order.greater_equal_elem(s as i64).float();
+            let sigma = proposal::lend_density_gradient(
+                sigma,
+                density_only,
+                &lending,
+                samples.sigma.clone(),
+            );
+            (t, sigma, Owners::Lent(lending))
         }
         None => {
             let (t, order) = samples.t.clone().sort_with_indices(1);
             let sigma = samples.sigma.clone().gather(1, order.clone());
-            (t, sigma, order)
+            (t, sigma, Owners::Own(order))
         }
     };
     let n = t_all.dims()[1];
@@ -304,14 +322,23 @@ pub fn render(
         let w = ray_marching::weights(sigma_all, segment_lengths(t_all.clone(), config.camera.far));
         (w.clone(), w)
     };
-    // Each composited sample's share: its own mass and that of the density-only entries it
-    // owns, in the samples' own order.
-    let share = Tensor::<2>::zeros([b * r, s], &device).scatter(
-        1,
-        owner,
-        mass.clone(),
-        IndexingUpdateOp::Add,
-    );
+    // Each composited sample's share: its own mass and what the density-only entries lend it,
+    // in the samples' own order.
+    let zeros = Tensor::<2>::zeros([b * r, s], &device);
+    let share = match owners {
+        Owners::Own(order) => zeros.scatter(1, order, mass.clone(), IndexingUpdateOp::Add),
+        Owners::Lent(l) => {
+            let to_right = mass.clone() * l.to_right;
+            zeros
+                .scatter(
+                    1,
+                    l.left,
+                    mass.clone() - to_right.clone(),
+                    IndexingUpdateOp::Add,
+                )
+                .scatter(1, l.right, to_right, IndexingUpdateOp::Add)
+        }
+    };
     let to_image = |x: Tensor<2>| -> Tensor<3> {
         let c = x.dims()[1];
         x.reshape([b, r, c])

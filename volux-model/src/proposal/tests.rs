@@ -275,7 +275,8 @@ fn gradients_through_the_composited_samples_match_f64_finite_differences() {
 
     // f64: the same placement (the importance depths, and the density-only depths with
     // their densities, held fixed as the renderer holds them), the midpoint rule over all
-    // of them sorted together.
+    // of them sorted together, the density-only densities moving with the composited ones
+    // around them ([`lend_density_gradient`]).
     let p = place(&cfg, &field, &o, &d, false);
     let (fine, proposal_t, proposal_sigma) = (
         to_f32_vec(p.importance),
@@ -296,14 +297,32 @@ fn gradients_through_the_composited_samples_match_f64_finite_differences() {
                     .sum::<f64>()
                     .sqrt()
             };
-            let mut entries: Vec<(f64, f64)> = fine[ray * n..(ray + 1) * n]
+            let full: Vec<f64> = fine[ray * n..(ray + 1) * n]
                 .iter()
-                .map(|&tt| (f64::from(tt), k * ball.sigma_at(radius(f64::from(tt)))))
+                .map(|&x| f64::from(x))
                 .collect();
-            entries.extend(
-                (ray * m..(ray + 1) * m)
-                    .map(|i| (f64::from(proposal_t[i]), f64::from(proposal_sigma[i]))),
-            );
+            // A density-only entry's density is the one found, plus the change of the
+            // composited densities interpolated there (zero at k0): its gradient.
+            let interpolated = |tt: f64, k: f64| -> f64 {
+                let before = full.iter().filter(|&&c| c <= tt).count();
+                let (l, r) = (before.saturating_sub(1), before.min(n - 1));
+                let a = if full[r] > full[l] {
+                    ((tt - full[l]) / (full[r] - full[l])).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                k * ((1.0 - a) * ball.sigma_at(radius(full[l]))
+                    + a * ball.sigma_at(radius(full[r])))
+            };
+            let mut entries: Vec<(f64, f64)> = full
+                .iter()
+                .map(|&tt| (tt, k * ball.sigma_at(radius(tt))))
+                .collect();
+            entries.extend((ray * m..(ray + 1) * m).map(|i| {
+                let tt = f64::from(proposal_t[i]);
+                let lent = interpolated(tt, k) - interpolated(tt, k0);
+                (tt, f64::from(proposal_sigma[i]) + lent)
+            }));
             entries.sort_by(|a, b| a.0.total_cmp(&b.0));
             let (mut optical, mut opacity, mut expected) = (0.0f64, 0.0f64, 0.0f64);
             for pair in entries.windows(2) {
@@ -324,5 +343,201 @@ fn gradients_through_the_composited_samples_match_f64_finite_differences() {
     assert!(
         (f64::from(got) - fd).abs() < 2e-3 * fd.abs().max(1e-2),
         "autodiff {got} vs f64 finite differences {fd}"
+    );
+}
+
+/// The plain reference of [`lend`] for one ray: `(left, right, to_right)` per entry.
+fn lend_reference(t: &[f32], composited: &[f32]) -> Vec<(usize, usize, f64)> {
+    let mut order: Vec<usize> = (0..composited.len()).collect();
+    order.sort_by(|&a, &b| composited[a].total_cmp(&composited[b]));
+    let sorted: Vec<f64> = order.iter().map(|&i| f64::from(composited[i])).collect();
+    let last = sorted.len() - 1;
+    t.iter()
+        .map(|&tt| {
+            let tt = f64::from(tt);
+            let at_or_before = sorted.iter().filter(|&&c| c <= tt).count();
+            let (l, r) = (at_or_before.saturating_sub(1), at_or_before.min(last));
+            let gap = sorted[r] - sorted[l];
+            let to_right = if gap > 0.0 {
+                ((tt - sorted[l]) / gap).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
+            (order[l], order[r], to_right)
+        })
+        .collect()
+}
+
+#[test]
+fn lending_matches_the_plain_reference() {
+    let device = Device::flex();
+    // Rays: entries before, between, on and after unsorted composited depths; two composited
+    // samples at one depth; a single composited sample.
+    let cases: Vec<(Vec<f32>, Vec<f32>)> = vec![
+        (
+            vec![1.0, 2.0, 2.5, 3.0, 3.25, 4.0, 5.0],
+            vec![4.0, 2.0, 3.0],
+        ),
+        (vec![2.0, 3.0, 3.0, 3.5, 6.0, 7.0, 8.0], vec![3.0, 3.0, 6.0]),
+        (vec![0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 9.0], vec![8.0, 1.0, 2.5]),
+    ];
+    let n = cases[0].0.len();
+    for (t, c) in &cases {
+        let got = lend(
+            Tensor::<1>::from_floats(t.as_slice(), &device).reshape([1, n]),
+            Tensor::<1>::from_floats(c.as_slice(), &device).reshape([1, c.len()]),
+        );
+        let left: Vec<i64> = got.left.into_data().convert::<i64>().try_to_vec().unwrap();
+        let right: Vec<i64> = got.right.into_data().convert::<i64>().try_to_vec().unwrap();
+        let to_right = to_f32_vec(got.to_right);
+        for (j, want) in lend_reference(t, c).into_iter().enumerate() {
+            assert_eq!(
+                (left[j] as usize, right[j] as usize),
+                (want.0, want.1),
+                "entry {j} of {t:?} to {c:?}"
+            );
+            assert!(
+                (f64::from(to_right[j]) - want.2).abs() < 1e-6,
+                "entry {j} of {t:?} to {c:?}: {} vs {}",
+                to_right[j],
+                want.2
+            );
+        }
+    }
+    let single = lend(
+        Tensor::<1>::from_floats([1.0, 2.0, 3.0], &device).reshape([1, 3]),
+        Tensor::<1>::from_floats([2.0], &device).reshape([1, 1]),
+    );
+    assert_eq!(
+        single
+            .left
+            .into_data()
+            .convert::<i64>()
+            .try_to_vec::<i64>()
+            .unwrap(),
+        vec![0, 0, 0]
+    );
+    assert_eq!(to_f32_vec(single.to_right), vec![0.0, 0.0, 0.0]);
+}
+
+/// A sphere whose albedo is `k` times the point's coordinates (shifted into [0, 1]), so that
+/// the values change along every ray.
+struct Graded<'a> {
+    sphere: &'a SoftSphere,
+    k: Tensor<1>,
+}
+
+impl Field for Graded<'_> {
+    fn query(&self, points: Tensor<3>, wants: FieldWants) -> FieldOutput {
+        let mut out = self.sphere.query(points.clone(), wants);
+        if wants.appearance {
+            out.albedo = Some((points.inner().add_scalar(0.5)) * self.k.clone().reshape([1, 1, 1]));
+        }
+        out
+    }
+}
+
+#[test]
+fn lent_values_are_interpolated_between_the_composited_samples() {
+    let device = Device::flex().autodiff();
+    let ball = sphere(0.01, 60.0);
+    let cfg = layout(0, 16, 8, 6);
+    let k0 = 0.7f64;
+    let k = Tensor::<1>::from_floats([k0 as f32], &device).require_grad();
+    let field = Graded {
+        sphere: &ball,
+        k: k.clone(),
+    };
+    let (side, pose) = (4, Pose::new(-0.3, 0.15));
+    let (o, d) = camera_ray_batch(&cfg.camera, &[pose], side, side, &device);
+    let wants = RenderWants {
+        albedo: true,
+        normals: false,
+        shading: false,
+        features: false,
+        depth: false,
+    };
+    let albedo = render(&cfg, &field, o.clone(), d.clone(), None, wants, false)
+        .albedo
+        .unwrap();
+    let got_values = to_f32_vec(albedo.clone());
+    let got_grad: f32 = k.grad(&albedo.sum().backward()).unwrap().into_scalar();
+
+    // f64: the renderer's placement held fixed; every entry's values the linear
+    // interpolation in depth of the composited samples' values around it.
+    let p = place(&cfg, &field, &o, &d, false);
+    let (fine, proposal_t, proposal_sigma) = (
+        to_f32_vec(p.importance),
+        to_f32_vec(p.t),
+        to_f32_vec(p.sigma),
+    );
+    let (origins, dirs) = (to_f32_vec(o), to_f32_vec(d));
+    let (n, m) = (cfg.importance, cfg.proposal + cfg.refine);
+    let render_ref = |k: f64| -> Vec<f64> {
+        let mut out = Vec::new();
+        for ray in 0..side * side {
+            let point = |tt: f64| -> [f64; 3] {
+                std::array::from_fn(|c| {
+                    f64::from(origins[ray * 3 + c]) + tt * f64::from(dirs[ray * 3 + c])
+                })
+            };
+            let radius = |tt: f64| point(tt).iter().map(|x| x * x).sum::<f64>().sqrt();
+            let value = |tt: f64| point(tt).map(|x| k * (x + 0.5));
+            let full: Vec<f64> = fine[ray * n..(ray + 1) * n]
+                .iter()
+                .map(|&x| f64::from(x))
+                .collect();
+            let lent = |tt: f64| -> [f64; 3] {
+                let before = full.iter().filter(|&&c| c <= tt).count();
+                let (l, r) = (before.saturating_sub(1), before.min(n - 1));
+                let a = if full[r] > full[l] {
+                    ((tt - full[l]) / (full[r] - full[l])).clamp(0.0, 1.0)
+                } else {
+                    0.0
+                };
+                let (vl, vr) = (value(full[l]), value(full[r]));
+                std::array::from_fn(|c| (1.0 - a) * vl[c] + a * vr[c])
+            };
+            let mut entries: Vec<(f64, f64, [f64; 3])> = full
+                .iter()
+                .map(|&tt| (tt, ball.sigma_at(radius(tt)), value(tt)))
+                .collect();
+            entries.extend((ray * m..(ray + 1) * m).map(|i| {
+                let tt = f64::from(proposal_t[i]);
+                (tt, f64::from(proposal_sigma[i]), lent(tt))
+            }));
+            entries.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let (mut optical, mut acc) = (0.0f64, [0.0f64; 3]);
+            for pair in entries.windows(2) {
+                let ((t0, s0, v0), (t1, s1, v1)) = (pair[0], pair[1]);
+                let tau = 0.5 * (s0 + s1) * (t1 - t0);
+                let w = (-optical).exp() * -(-tau).exp_m1();
+                optical += tau;
+                for c in 0..3 {
+                    acc[c] += w * 0.5 * (v0[c] + v1[c]);
+                }
+            }
+            out.extend(acc);
+        }
+        out
+    };
+    let want = render_ref(k0);
+    // The renderer's albedo is `[batch, rays, 3]`, as the reference.
+    for ray in 0..side * side {
+        for c in 0..3 {
+            let (g, w) = (f64::from(got_values[ray * 3 + c]), want[ray * 3 + c]);
+            assert!((g - w).abs() < 2e-4, "ray {ray} channel {c}: {g} vs {w}");
+        }
+    }
+    let h = 1e-5;
+    let fd: f64 = render_ref(k0 + h)
+        .iter()
+        .zip(render_ref(k0 - h))
+        .map(|(a, b)| (a - b) / (2.0 * h))
+        .sum();
+    assert!(fd.abs() > 1e-2, "the albedo depends on k: {fd}");
+    assert!(
+        (f64::from(got_grad) - fd).abs() < 1e-3 * fd.abs(),
+        "autodiff {got_grad} vs f64 finite differences {fd}"
     );
 }
