@@ -29,7 +29,7 @@ pub struct Batch {
     /// Which batch of the stream this is.
     pub index: u64,
     /// Every layer, planar (`[batch, channels, side, side]`), sRGB layers mapped to
-    /// `[-1, 1]`.
+    /// `[-1, 1]`; empty where the dataset does not provide the layer.
     pub layers: Layers<Vec<f32>>,
     pub poses: Vec<Pose>,
     /// The (environment, rotation) each example was lit with; the generator's samples of this
@@ -38,8 +38,9 @@ pub struct Batch {
 }
 
 /// A batch on a device: every layer `[b, channels, side, side]` in the batch's ranges (see
-/// [`crate::layers`]: sRGB layers in `[-1, 1]`, D_P's reals the photo).
-pub type BatchTensors = Layers<Tensor<4>>;
+/// [`crate::layers`]: sRGB layers in `[-1, 1]`, D_P's reals the photo); `None` where the
+/// dataset does not provide the layer.
+pub type BatchTensors = Layers<Option<Tensor<4>>>;
 
 /// Appends a row-major layer of `channels`-vectors (interleaved) as `channels` planes, mapped
 /// by `f`.
@@ -50,13 +51,15 @@ fn push_planar(out: &mut Vec<f32>, layer: &[f32], channels: usize, f: impl Fn(f3
 }
 
 impl Batch {
-    /// Collates examples of equal sizes (checked) into a batch.
+    /// Collates examples of equal sizes and layers (checked) into a batch.
     pub fn collate(index: u64, samples: &[TrainingSample]) -> Batch {
         let first = samples.first().expect("a batch has at least one example");
         let (side, factor) = (first.side, first.factor);
         assert!(
-            samples.iter().all(|s| s.side == side && s.factor == factor),
-            "examples of one batch share their sizes"
+            samples.iter().all(|s| s.side == side
+                && s.factor == factor
+                && s.layers.map(|_, v| v.is_empty()) == first.layers.map(|_, v| v.is_empty())),
+            "examples of one batch share their sizes and layers"
         );
         let layers = Layers::from_fn(|layer| {
             let mut planes = Vec::with_capacity(samples.len() * layer.floats(side, factor));
@@ -100,13 +103,19 @@ impl Batch {
         lighting_tensors(&sets, &yaws, device)
     }
 
+    /// Which layers the batch has.
+    pub fn provided(&self) -> Layers<bool> {
+        self.layers.map(|_, v| !v.is_empty())
+    }
+
     /// The batch on `device`.
     pub fn to_tensors(&self, device: &Device) -> BatchTensors {
         let factor = self.side / self.side_lo;
         self.layers.map(|layer, values| {
             let s = layer.side(self.side, factor);
             let shape = [self.size, layer.channels(), s, s];
-            Tensor::<4>::from_data(TensorData::new(values.clone(), shape), device)
+            (!values.is_empty())
+                .then(|| Tensor::<4>::from_data(TensorData::new(values.clone(), shape), device))
         })
     }
 }
@@ -204,6 +213,7 @@ impl<E> Drop for BatchLoader<E> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::layers::Layer;
 
     fn sample(side: usize, value: f32) -> TrainingSample {
         let n = side * side;
@@ -253,7 +263,9 @@ mod tests {
     #[test]
     fn collation_is_planar_and_in_the_generators_ranges() {
         let batch = Batch::collate(7, &[sample(4, 0.25), sample(4, 1.0)]);
-        let t = batch.to_tensors(&Device::flex());
+        let t = batch
+            .to_tensors(&Device::flex())
+            .map(|_, t| t.clone().unwrap());
         assert_eq!(t.photo.dims(), [2, 3, 4, 4]);
         assert_eq!(t.albedo_lo.dims(), [2, 3, 2, 2]);
         assert_eq!(t.mask.dims(), [2, 1, 4, 4]);
@@ -270,6 +282,32 @@ mod tests {
             (batch.index, batch.poses[1], batch.draws[0].map),
             (7, Pose::new(1.0, 0.0), 1)
         );
+    }
+
+    #[test]
+    fn layers_a_dataset_does_not_provide_stay_off_the_device() {
+        let photos_only = |value| {
+            let mut s = sample(4, value);
+            let photo = std::mem::take(&mut s.layers.photo);
+            s.layers = Layers {
+                photo,
+                ..Layers::default()
+            };
+            s
+        };
+        let batch = Batch::collate(0, &[photos_only(0.5), photos_only(1.0)]);
+        assert_eq!(batch.provided(), Layers::from_fn(|l| l == Layer::Photo));
+        let t = batch.to_tensors(&Device::flex());
+        assert_eq!(t.photo.as_ref().map(|p| p.dims()), Some([2, 3, 4, 4]));
+        assert!(t.iter().all(|(l, t)| t.is_some() == (l == Layer::Photo)));
+    }
+
+    #[test]
+    #[should_panic(expected = "share their sizes and layers")]
+    fn a_batch_of_mixed_layers_is_refused() {
+        let mut partial = sample(4, 0.5);
+        partial.layers.relit.clear();
+        Batch::collate(0, &[sample(4, 0.5), partial]);
     }
 
     #[test]

@@ -15,7 +15,8 @@ use volux_envmap::random::{self, SplitMix64};
 use volux_envmap::{LightMap, LightMapSet, Rgb};
 
 use crate::batch::Batch;
-use crate::folder_dataset::FolderDataset;
+use crate::folder_dataset::{FolderContent, FolderDataset};
+use crate::layers::Layers;
 use crate::pose_distribution::PoseDistribution;
 use crate::relighting::IntrinsicImage;
 use crate::synthetic_head::{self, RenderSettings, SyntheticHead};
@@ -26,7 +27,9 @@ mod error;
 #[cfg(test)]
 mod tests;
 
-pub use config::{CacheConfig, DataConfig, MAX_RESOLUTION, SourceConfig};
+pub use config::{
+    CacheConfig, DataConfig, FolderLayer, MAX_RESOLUTION, SourceConfig, folder_content,
+};
 pub use error::{DataError, LightingError};
 
 enum Source {
@@ -102,7 +105,9 @@ impl Dataset {
             SourceConfig::Folder {
                 path,
                 specular_weights,
+                layers,
             } => {
+                let content = folder_content(layers).map_err(DataError::Config)?;
                 if let Some(k) = specular_weights
                     .iter()
                     .position(|w| !(w.is_finite() && *w >= 0.0))
@@ -113,7 +118,7 @@ impl Dataset {
                     )));
                 }
                 Source::Folder {
-                    dataset: FolderDataset::open(path)?,
+                    dataset: FolderDataset::open_with(path, content)?,
                     specular_weights: *specular_weights,
                 }
             }
@@ -134,6 +139,14 @@ impl Dataset {
 
     pub fn factor(&self) -> usize {
         self.factor
+    }
+
+    /// Which layers the examples have (the others are empty).
+    pub fn provided(&self) -> Layers<bool> {
+        match &self.source {
+            Source::Synthetic { .. } => Layers::from_fn(|_| true),
+            Source::Folder { dataset, .. } => dataset.content().provided(),
+        }
     }
 
     /// The light-map bank the draws index.
@@ -180,6 +193,30 @@ impl Dataset {
             } => {
                 let i = (rng.next_u64() % dataset.len() as u64) as usize;
                 let draw = LightingDraw::sample(self.lights.len(), &mut rng);
+                if dataset.content() == FolderContent::Photos {
+                    let loaded = dataset.load_photo(i)?;
+                    let stem = loaded.stem.clone();
+                    let size_error = |(width, height)| DataError::FolderSize {
+                        stem: stem.clone(),
+                        width,
+                        height,
+                        side: self.side,
+                    };
+                    let (photo, mask) = fit_photo(
+                        loaded.photo,
+                        loaded.mask,
+                        (loaded.width, loaded.height),
+                        self.side,
+                    )
+                    .map_err(size_error)?;
+                    let intrinsics = Intrinsics::PhotoOnly {
+                        side: self.side,
+                        photo: &photo,
+                        mask: mask.as_deref(),
+                        pose: loaded.pose,
+                    };
+                    return finish(intrinsics, draw, &stem);
+                }
                 let loaded = dataset.load(i)?;
                 let stem = loaded.stem;
                 let (image, photo) =
@@ -217,6 +254,35 @@ impl Dataset {
     }
 }
 
+/// Brings a photo of `(width, height)` and its mask (if any) to `side x side` by area
+/// averaging, the photo in linear light (the side must be a multiple of `side`).
+#[allow(clippy::type_complexity)]
+fn fit_photo(
+    photo: Vec<Rgb>,
+    mask: Option<Vec<f32>>,
+    (w, h): (usize, usize),
+    side: usize,
+) -> Result<(Vec<Rgb>, Option<Vec<f32>>), (usize, usize)> {
+    if w != h || w % side != 0 {
+        return Err((w, h));
+    }
+    let k = w / side;
+    if k == 1 {
+        return Ok((photo, mask));
+    }
+    let average = |layer: &[[f32; 3]]| crate::training_sample::area_downsample(layer, w, k);
+    let linear: Vec<Rgb> = photo.iter().map(|c| c.map(srgb_to_linear)).collect();
+    let photo = average(&linear)
+        .into_iter()
+        .map(|c| c.map(linear_to_srgb))
+        .collect();
+    let mask = mask.map(|mask| {
+        let mask_rgb: Vec<[f32; 3]> = mask.iter().map(|&m| [m; 3]).collect();
+        average(&mask_rgb).into_iter().map(|m| m[0]).collect()
+    });
+    Ok((photo, mask))
+}
+
 /// A seed for example `index` of a stream seeded `seed`.
 fn mix(seed: u64, index: u64) -> u64 {
     random::stream_seed(seed, index, random::EXAMPLE_STREAM)
@@ -238,16 +304,8 @@ fn fit(
         return Ok((image, photo));
     }
     let average = |layer: &[[f32; 3]]| crate::training_sample::area_downsample(layer, w, k);
-    let linear: Vec<Rgb> = photo.iter().map(|c| c.map(srgb_to_linear)).collect();
-    let photo = average(&linear)
-        .into_iter()
-        .map(|c| c.map(linear_to_srgb))
-        .collect();
-    let mask_rgb: Vec<[f32; 3]> = image.mask.iter().map(|&m| [m; 3]).collect();
-    let mask = average(&mask_rgb)
-        .into_iter()
-        .map(|m| m[0])
-        .collect::<Vec<f32>>();
+    let (photo, mask) = fit_photo(photo, Some(image.mask), (w, h), side)?;
+    let mask = mask.expect("given");
     let normals = average(&image.normals)
         .into_iter()
         .zip(&mask)

@@ -54,8 +54,41 @@ pub struct Manifest {
     pub side: usize,
     pub factor: usize,
     pub spec: CacheSpec,
+    /// The layers each example stores, in the order of [`Layer::ALL`] (a photos-only
+    /// dataset's examples have the photo alone). Absent: every layer.
+    #[serde(default = "every_layer_name")]
+    pub layers: Vec<String>,
     /// Finished shards, by index.
     pub shards: Vec<ShardEntry>,
+}
+
+fn every_layer_name() -> Vec<String> {
+    layer_names(&Layers::from_fn(|_| true))
+}
+
+/// The names of the `provided` layers, in the order of [`Layer::ALL`].
+fn layer_names(provided: &Layers<bool>) -> Vec<String> {
+    provided
+        .iter()
+        .filter(|(_, p)| **p)
+        .map(|(l, _)| l.name().to_string())
+        .collect()
+}
+
+/// The layers a manifest's names list, or the first name that is no layer (or out of order).
+fn parse_layers(names: &[String]) -> Result<Layers<bool>, String> {
+    let provided = Layers::from_fn(|l| names.iter().any(|n| n == l.name()));
+    if layer_names(&provided) != names {
+        let bad = names
+            .iter()
+            .find(|n| !Layer::ALL.iter().any(|l| l.name() == n.as_str()))
+            .map_or_else(
+                || format!("layers {names:?} are repeated or out of order"),
+                |n| format!("no layer is called {n:?}"),
+            );
+        return Err(bad);
+    }
+    Ok(provided)
 }
 
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -129,12 +162,13 @@ fn shard_name(index: u64) -> String {
     format!("shard-{index:05}.bin")
 }
 
-/// Floats per example at `side` and `side / factor`.
-fn example_floats(side: usize, factor: usize) -> usize {
-    // pose (2), draw (2), then every layer in the order of `Layer::ALL`.
-    4 + Layer::ALL
+/// Floats per example at `side` and `side / factor` with the `provided` layers.
+fn example_floats(side: usize, factor: usize, provided: &Layers<bool>) -> usize {
+    // pose (2), draw (2), then every provided layer in the order of `Layer::ALL`.
+    4 + provided
         .iter()
-        .map(|l| l.floats(side, factor))
+        .filter(|(_, p)| **p)
+        .map(|(l, _)| l.floats(side, factor))
         .sum::<usize>()
 }
 
@@ -149,7 +183,12 @@ fn encode_example(out: &mut Vec<u8>, s: &TrainingSample) {
     }
 }
 
-fn decode_example(bytes: &[u8], side: usize, factor: usize) -> TrainingSample {
+fn decode_example(
+    bytes: &[u8],
+    side: usize,
+    factor: usize,
+    provided: &Layers<bool>,
+) -> TrainingSample {
     let floats: Vec<f32> = bytes
         .chunks_exact(4)
         .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
@@ -165,7 +204,14 @@ fn decode_example(bytes: &[u8], side: usize, factor: usize) -> TrainingSample {
         at += n;
         part
     };
-    let layers = Layers::from_fn(|layer| take(layer.floats(side, factor)).to_vec());
+    let layers = Layers::from_fn(|layer| {
+        let n = if *provided.get(layer) {
+            layer.floats(side, factor)
+        } else {
+            0
+        };
+        take(n).to_vec()
+    });
     TrainingSample {
         side,
         factor,
@@ -230,18 +276,21 @@ pub fn build(
         |s: u64| (spec.examples - s * spec.shard_size as u64).min(spec.shard_size as u64) as usize;
     // Keep what an earlier build with the same fingerprint and shard size finished, if the
     // file is still intact and holds as many examples as the shard should now.
+    let provided = dataset.provided();
     let mut manifest = Manifest {
         format_version: EXAMPLE_FORMAT_VERSION,
         fingerprint: fingerprint.to_string(),
         side,
         factor,
         spec,
+        layers: layer_names(&provided),
         shards: Vec::new(),
     };
     if let Some(old) = read_manifest(dir)? {
         let compatible = old.format_version == EXAMPLE_FORMAT_VERSION
             && old.fingerprint == fingerprint
             && (old.side, old.factor) == (side, factor)
+            && old.layers == manifest.layers
             && old.spec.shard_size == spec.shard_size;
         for entry in old.shards {
             let path = dir.join(&entry.file);
@@ -258,7 +307,7 @@ pub fn build(
         }
     }
     let kept = manifest.shards.len();
-    let floats = example_floats(side, factor);
+    let floats = example_floats(side, factor, &provided);
     let mut built = 0;
     for s in 0..shards {
         if manifest.shards.iter().any(|e| e.index == s) {
@@ -305,6 +354,8 @@ pub fn build(
 pub struct ExampleCache {
     dir: PathBuf,
     manifest: Manifest,
+    /// The layers the examples store (the manifest's `layers`).
+    provided: Layers<bool>,
     /// Per shard, whether its file still has the manifest's SHA-256: checked once per process,
     /// the first time one of its examples is read.
     verified: Vec<std::sync::OnceLock<Result<(), String>>>,
@@ -340,7 +391,11 @@ impl ExampleCache {
                 ),
             });
         }
-        let floats = example_floats(manifest.side, manifest.factor);
+        let provided = parse_layers(&manifest.layers).map_err(|message| CacheError::Corrupt {
+            path: dir.join(MANIFEST),
+            message,
+        })?;
+        let floats = example_floats(manifest.side, manifest.factor, &provided);
         for entry in &manifest.shards {
             let path = dir.join(&entry.file);
             let len = fs::metadata(&path).map_err(io_error(&path))?.len() as usize;
@@ -356,12 +411,18 @@ impl ExampleCache {
         Ok(ExampleCache {
             dir: dir.to_path_buf(),
             manifest,
+            provided,
             verified,
         })
     }
 
     pub fn manifest(&self) -> &Manifest {
         &self.manifest
+    }
+
+    /// Which layers the examples have (the others are empty).
+    pub fn provided(&self) -> Layers<bool> {
+        self.provided.clone()
     }
 
     pub fn len(&self) -> u64 {
@@ -399,7 +460,7 @@ impl ExampleCache {
             });
         }
         let (side, factor) = (self.manifest.side, self.manifest.factor);
-        let bytes_per = example_floats(side, factor) * 4;
+        let bytes_per = example_floats(side, factor, &self.provided) * 4;
         let mut file = fs::File::open(&path).map_err(io_error(&path))?;
         let mut header = [0u8; HEADER_BYTES];
         file.read_exact(&mut header).map_err(io_error(&path))?;
@@ -414,7 +475,7 @@ impl ExampleCache {
             .map_err(io_error(&path))?;
         let mut bytes = vec![0u8; bytes_per];
         file.read_exact(&mut bytes).map_err(io_error(&path))?;
-        Ok(decode_example(&bytes, side, factor))
+        Ok(decode_example(&bytes, side, factor, &self.provided))
     }
 
     /// Batch `index` of `size` examples: examples `index * size ..`, wrapping around the cache.

@@ -9,6 +9,7 @@ use std::sync::Arc;
 use crate::batch::{Batch, BatchLoader};
 use crate::dataset::{DataConfig, DataError, Dataset};
 use crate::example_cache::{self, CacheError, ExampleCache};
+use crate::layers::Layers;
 use crate::light_map_bank::LightMapBank;
 
 /// Why examples cannot be opened or read.
@@ -58,6 +59,14 @@ impl Examples {
             });
         }
         Ok(Examples::Cached(Arc::new(opened)))
+    }
+
+    /// Which layers the examples have (the others are empty).
+    pub fn provided(&self) -> Layers<bool> {
+        match self {
+            Examples::Live(d) => d.provided(),
+            Examples::Cached(c) => c.provided(),
+        }
     }
 
     /// Batch `index` of `size` examples.

@@ -27,6 +27,16 @@
 //!   pitch strictly between -pi/2 and pi/2. Blank lines, spaces around fields, a UTF-8 byte
 //!   order mark and CRLF line ends are accepted.
 //!
+//! # Photos only
+//!
+//! A dataset may leave the intrinsic layers out on purpose ([`FolderContent::Photos`],
+//! `layers = ["photo"]` in a config's `[data.source]`): then only `photos/` (with the
+//! optional `masks/` and `poses.csv`) is read, `albedo/` and `normals/` are not required and
+//! ignored if present, and training runs only the terms whose data exists (D_P). Without a
+//! mask such a photo is used as it is (no mask is derived: there are no normals to derive it
+//! from). Albedo and normals come together or not at all: the relit, diffuse and specular
+//! layers need both, and the default mask comes from the normals.
+//!
 //! [`FolderDataset::open`] only lists the folders and reads `poses.csv`;
 //! [`FolderDataset::load`] decodes one sample. Normals of foreground pixels (mask > 0) are
 //! made unit length: those further than [`UNIT_TOLERANCE`] from it are counted as
@@ -44,6 +54,7 @@ use std::path::{Path, PathBuf};
 use volux_envmap::Rgb;
 use volux_envmap::io::{self, Format, RawImage};
 
+use crate::layers::Layers;
 use crate::relighting::IntrinsicImage;
 
 /// Decoded normals whose length differs from 1 by more than this are counted as renormalised.
@@ -102,13 +113,48 @@ const MASKS: Layer = Layer {
     extensions: &["png", "jpg", "jpeg"],
 };
 
+/// Which layers a folder dataset provides (module docs: "Photos only").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default)]
+pub enum FolderContent {
+    /// Photos with their albedo and normal maps: every layer of a training example.
+    #[default]
+    Intrinsics,
+    /// Photos alone (and masks, if given): only the photo layer.
+    Photos,
+}
+
+impl FolderContent {
+    /// Which layers of a training example a dataset of this content provides.
+    pub fn provided(self) -> Layers<bool> {
+        match self {
+            FolderContent::Intrinsics => Layers::from_fn(|_| true),
+            FolderContent::Photos => Layers::from_fn(|l| l == crate::layers::Layer::Photo),
+        }
+    }
+
+    /// The folders of the layout a dataset of this content reads (masks are optional).
+    fn required(self) -> &'static [Layer] {
+        match self {
+            FolderContent::Intrinsics => &[PHOTOS, ALBEDO, NORMALS],
+            FolderContent::Photos => &[PHOTOS],
+        }
+    }
+}
+
+/// The intrinsic files of one photo.
+#[derive(Clone, Debug)]
+struct IntrinsicFiles {
+    albedo: PathBuf,
+    normals: PathBuf,
+}
+
 /// The files of one photo.
 #[derive(Clone, Debug)]
 struct SampleFiles {
     stem: String,
     photo: PathBuf,
-    albedo: PathBuf,
-    normals: PathBuf,
+    /// `None` in a photos-only dataset.
+    intrinsics: Option<IntrinsicFiles>,
     mask: Option<PathBuf>,
     pose: Pose,
 }
@@ -117,9 +163,24 @@ struct SampleFiles {
 #[derive(Clone, Debug)]
 pub struct FolderDataset {
     root: PathBuf,
+    content: FolderContent,
     entries: Vec<SampleFiles>,
     ignored: Vec<PathBuf>,
     has_poses: bool,
+}
+
+/// One decoded photo of a folder dataset, without intrinsic layers ([`FolderDataset::load_photo`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PhotoSample {
+    /// The file stem shared by the sample's files.
+    pub stem: String,
+    pub width: usize,
+    pub height: usize,
+    /// The photo, sRGB-encoded in [0, 1], row-major from the top-left pixel.
+    pub photo: Vec<Rgb>,
+    /// The mask file's coverage in [0, 1], if the photo has one.
+    pub mask: Option<Vec<f32>>,
+    pub pose: Pose,
 }
 
 /// One decoded sample of a folder dataset.
@@ -139,17 +200,23 @@ pub struct FolderSample {
 }
 
 impl FolderDataset {
-    /// Lists a folder dataset at `root` and checks that its files match up and that
-    /// `poses.csv` (if any) is valid. Decodes no image, so it is cheap; samples are sorted by
-    /// name. Files outside the layout are ignored with a warning.
+    /// Lists a folder dataset of every layer at `root` ([`FolderDataset::open_with`]).
     pub fn open(root: &Path) -> Result<FolderDataset, FolderError> {
+        Self::open_with(root, FolderContent::Intrinsics)
+    }
+
+    /// Lists a folder dataset at `root` that provides `content`, and checks that its files
+    /// match up and that `poses.csv` (if any) is valid. Decodes no image, so it is cheap;
+    /// samples are sorted by name. Files outside the layout are ignored with a warning; so are
+    /// `albedo/` and `normals/` in a photos-only dataset.
+    pub fn open_with(root: &Path, content: FolderContent) -> Result<FolderDataset, FolderError> {
         if !is_folder(root)? {
             return Err(FolderError::NoSuchFolder {
                 path: root.to_path_buf(),
             });
         }
         let mut missing_folders = Vec::new();
-        for layer in [PHOTOS, ALBEDO, NORMALS] {
+        for layer in content.required() {
             if !is_folder(&root.join(layer.folder))? {
                 missing_folders.push(layer.folder);
             }
@@ -158,16 +225,35 @@ impl FolderDataset {
             return Err(FolderError::MissingFolders {
                 root: root.to_path_buf(),
                 folders: missing_folders,
+                content,
             });
         }
         let has_masks = is_folder(&root.join(MASKS.folder))?;
+        let intrinsics = content == FolderContent::Intrinsics;
+        if !intrinsics {
+            let unused: Vec<String> = [ALBEDO, NORMALS]
+                .iter()
+                .filter(|l| root.join(l.folder).exists())
+                .map(|l| format!("{}/", l.folder))
+                .collect();
+            if !unused.is_empty() {
+                tracing::warn!(
+                    "{}: photos only (layers = [\"photo\"]): {} not read",
+                    root.display(),
+                    unused.join(" and ")
+                );
+            }
+        }
 
         let mut duplicates = Vec::new();
         let mut ignored = Vec::new();
         let mut scan_layer = |layer: Layer| scan(root, layer, &mut duplicates, &mut ignored);
         let photos = scan_layer(PHOTOS)?;
-        let albedo = scan_layer(ALBEDO)?;
-        let normals = scan_layer(NORMALS)?;
+        let (albedo, normals) = if intrinsics {
+            (scan_layer(ALBEDO)?, scan_layer(NORMALS)?)
+        } else {
+            (BTreeMap::new(), BTreeMap::new())
+        };
         let masks = if has_masks {
             scan_layer(MASKS)?
         } else {
@@ -182,7 +268,12 @@ impl FolderDataset {
             return Err(FolderError::NoPhotos { folder, ignored });
         }
         let mut missing = Vec::new();
-        for (layer, files) in [(ALBEDO, &albedo), (NORMALS, &normals)] {
+        let required: &[(Layer, &BTreeMap<String, PathBuf>)] = if intrinsics {
+            &[(ALBEDO, &albedo), (NORMALS, &normals)]
+        } else {
+            &[]
+        };
+        for &(layer, files) in required {
             let names: Vec<String> = photos
                 .keys()
                 .filter(|s| !files.contains_key(*s))
@@ -232,8 +323,10 @@ impl FolderDataset {
         let entries = photos
             .into_iter()
             .map(|(stem, photo)| SampleFiles {
-                albedo: albedo[&stem].clone(),
-                normals: normals[&stem].clone(),
+                intrinsics: intrinsics.then(|| IntrinsicFiles {
+                    albedo: albedo[&stem].clone(),
+                    normals: normals[&stem].clone(),
+                }),
                 mask: masks.get(&stem).cloned(),
                 pose: poses.as_ref().map_or(Pose::new(0.0, 0.0), |p| p[&stem]),
                 stem,
@@ -242,6 +335,7 @@ impl FolderDataset {
             .collect();
         Ok(FolderDataset {
             root: root.to_path_buf(),
+            content,
             entries,
             ignored,
             has_poses,
@@ -256,6 +350,11 @@ impl FolderDataset {
     /// The dataset's root folder.
     pub fn root(&self) -> &Path {
         &self.root
+    }
+
+    /// Which layers the dataset provides.
+    pub fn content(&self) -> FolderContent {
+        self.content
     }
 
     /// The number of samples (at least 1: [`FolderDataset::open`] rejects an empty dataset).
@@ -297,27 +396,28 @@ impl FolderDataset {
 
     /// Decodes sample `i` (module docs: what happens to masks and normals). Panics if
     /// `i >= len()`.
+    /// The dataset must provide [`FolderContent::Intrinsics`] (else an error naming the root).
     pub fn load(&self, i: usize) -> Result<FolderSample, FolderError> {
         let entry = &self.entries[i];
-        let photo = io::read_encoded(&entry.photo)?;
-        let (width, height) = (photo.width, photo.height);
+        let Some(files) = &entry.intrinsics else {
+            return Err(FolderError::NoIntrinsics {
+                root: self.root.clone(),
+            });
+        };
+        let PhotoSample {
+            photo,
+            width,
+            height,
+            mask,
+            ..
+        } = self.load_photo(i)?;
         let check_size = |layer: &'static str, path: &Path, raw: &RawImage| {
-            if (raw.width, raw.height) == (width, height) {
-                Ok(())
-            } else {
-                Err(FolderError::SizeMismatch {
-                    stem: entry.stem.clone(),
-                    layer,
-                    path: path.to_path_buf(),
-                    size: (raw.width, raw.height),
-                    photo: (width, height),
-                })
-            }
+            check_size(&entry.stem, layer, path, raw, (width, height))
         };
 
-        let raw = io::read_raw(&entry.albedo)?;
-        check_size("albedo", &entry.albedo, &raw)?;
-        check_finite(&entry.albedo, &raw)?;
+        let raw = io::read_raw(&files.albedo)?;
+        check_size("albedo", &files.albedo, &raw)?;
+        check_finite(&files.albedo, &raw)?;
         let mut clamped = 0;
         let albedo: Vec<Rgb> = raw
             .texels
@@ -331,30 +431,26 @@ impl FolderDataset {
         if clamped > 0 {
             tracing::warn!(
                 "{}: {clamped} pixel(s) outside [0, 1] clamped",
-                entry.albedo.display()
+                files.albedo.display()
             );
         }
 
-        let mut normals: Vec<[f32; 3]> = if Format::of(&entry.normals)? == Format::Exr {
-            let raw = io::read_raw(&entry.normals)?;
-            check_size("normals", &entry.normals, &raw)?;
-            check_finite(&entry.normals, &raw)?;
+        let mut normals: Vec<[f32; 3]> = if Format::of(&files.normals)? == Format::Exr {
+            let raw = io::read_raw(&files.normals)?;
+            check_size("normals", &files.normals, &raw)?;
+            check_finite(&files.normals, &raw)?;
             raw.texels
         } else {
-            let raw = io::read_encoded(&entry.normals)?;
-            check_size("normals", &entry.normals, &raw)?;
+            let raw = io::read_encoded(&files.normals)?;
+            check_size("normals", &files.normals, &raw)?;
             raw.texels
                 .into_iter()
                 .map(|c| c.map(|v| 2.0 * v - 1.0))
                 .collect()
         };
 
-        let mask: Vec<f32> = match &entry.mask {
-            Some(path) => {
-                let raw = io::read_encoded(path)?;
-                check_size("mask", path, &raw)?;
-                raw.texels.into_iter().map(|c| c[0]).collect()
-            }
+        let mask: Vec<f32> = match mask {
+            Some(mask) => mask,
             None => normals
                 .iter()
                 .map(|n| f32::from(u8::from(length(*n) > MASK_FROM_NORMAL_LENGTH)))
@@ -365,7 +461,7 @@ impl FolderDataset {
         if foreground == 0 {
             return Err(FolderError::NoForeground {
                 stem: entry.stem.clone(),
-                path: entry.mask.clone().unwrap_or_else(|| entry.normals.clone()),
+                path: entry.mask.clone().unwrap_or_else(|| files.normals.clone()),
                 from_normals: entry.mask.is_none(),
             });
         }
@@ -391,14 +487,14 @@ impl FolderDataset {
         let percent = |count: usize| 100.0 * count as f64 / foreground as f64;
         if degenerate == foreground {
             return Err(FolderError::BadNormals {
-                path: entry.normals.clone(),
+                path: files.normals.clone(),
                 reason: "normals have no direction (zero length)",
                 percent: 100.0,
             });
         }
         if away as f64 > MAX_AWAY_FRACTION * foreground as f64 {
             return Err(FolderError::BadNormals {
-                path: entry.normals.clone(),
+                path: files.normals.clone(),
                 reason: "normals face away from the camera",
                 percent: percent(away),
             });
@@ -406,7 +502,7 @@ impl FolderDataset {
 
         Ok(FolderSample {
             stem: entry.stem.clone(),
-            photo: photo.texels,
+            photo,
             image: IntrinsicImage {
                 width,
                 height,
@@ -417,6 +513,62 @@ impl FolderDataset {
             },
             renormalised,
             degenerate,
+        })
+    }
+}
+
+impl FolderDataset {
+    /// Decodes the photo of sample `i` with its mask file (if any) and pose, and nothing
+    /// else: all a photos-only dataset has. Panics if `i >= len()`.
+    pub fn load_photo(&self, i: usize) -> Result<PhotoSample, FolderError> {
+        let entry = &self.entries[i];
+        let photo = io::read_encoded(&entry.photo)?;
+        let (width, height) = (photo.width, photo.height);
+        let mask = match &entry.mask {
+            Some(path) => {
+                let raw = io::read_encoded(path)?;
+                check_size(&entry.stem, "mask", path, &raw, (width, height))?;
+                let mask: Vec<f32> = raw.texels.into_iter().map(|c| c[0]).collect();
+                if entry.intrinsics.is_none() && !mask.iter().any(|&m| m > 0.0) {
+                    return Err(FolderError::NoForeground {
+                        stem: entry.stem.clone(),
+                        path: path.clone(),
+                        from_normals: false,
+                    });
+                }
+                Some(mask)
+            }
+            None => None,
+        };
+        Ok(PhotoSample {
+            stem: entry.stem.clone(),
+            width,
+            height,
+            photo: photo.texels,
+            mask,
+            pose: entry.pose,
+        })
+    }
+}
+
+/// An error unless `raw` (the `layer` of sample `stem`, read from `path`) has the photo's
+/// `(width, height)`.
+fn check_size(
+    stem: &str,
+    layer: &'static str,
+    path: &Path,
+    raw: &RawImage,
+    photo: (usize, usize),
+) -> Result<(), FolderError> {
+    if (raw.width, raw.height) == photo {
+        Ok(())
+    } else {
+        Err(FolderError::SizeMismatch {
+            stem: stem.to_string(),
+            layer,
+            path: path.to_path_buf(),
+            size: (raw.width, raw.height),
+            photo,
         })
     }
 }

@@ -62,10 +62,19 @@ pub enum Intrinsics<'a> {
         /// given: one derived from the normals' length is not trusted with the photo.
         over_background: bool,
     },
+    /// A photos-only folder dataset's image: the photo alone, composited over the background
+    /// with its mask if it has one. No relighting: the example has the photo layer only.
+    PhotoOnly {
+        side: usize,
+        photo: &'a [Rgb],
+        mask: Option<&'a [f32]>,
+        pose: Pose,
+    },
 }
 
 /// All layers of one example at `side x side` (output) and `side / factor` (volume)
-/// resolution: row-major, channels interleaved per pixel ([`crate::layers`]).
+/// resolution: row-major, channels interleaved per pixel ([`crate::layers`]). A layer the
+/// dataset does not provide is empty.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrainingSample {
     pub side: usize,
@@ -110,6 +119,12 @@ pub fn make_sample(
     let (image, camera) = match &intrinsics {
         Intrinsics::Synthetic { render, .. } => (&render.image, render.camera.clone()),
         Intrinsics::Photo { image, .. } => (*image, volux_model::ray_sampling::CameraConfig::new()),
+        &Intrinsics::PhotoOnly {
+            side,
+            photo,
+            mask,
+            pose,
+        } => return photo_only(side, photo, mask, pose, draw, background, factor),
     };
     let (side, height) = (image.width, image.height);
     if side != height {
@@ -126,6 +141,7 @@ pub fn make_sample(
             let shading = synthetic_head::shade(head, render, lights, draw.yaw, background)?;
             (shading.layers, shading.photo)
         }
+        Intrinsics::PhotoOnly { .. } => unreachable!("returned above"),
         Intrinsics::Photo {
             image,
             photo,
@@ -176,6 +192,45 @@ pub fn make_sample(
             diffuse: layers.diffuse.into_flattened(),
             specular: layers.specular.into_flattened(),
         },
+    })
+}
+
+/// The example of a photos-only dataset: the photo layer alone (over the background where
+/// a mask is given), every other layer empty.
+fn photo_only(
+    side: usize,
+    photo: &[Rgb],
+    mask: Option<&[f32]>,
+    pose: Pose,
+    draw: LightingDraw,
+    background: Rgb,
+    factor: usize,
+) -> Result<TrainingSample, SampleError> {
+    if factor == 0 || !side.is_multiple_of(factor) {
+        return Err(SampleError::Factor { side, factor });
+    }
+    let want = side * side;
+    if let Some(got) = [Some(photo.len()), mask.map(<[f32]>::len)]
+        .into_iter()
+        .flatten()
+        .find(|&n| n != want)
+    {
+        return Err(SampleError::PhotoSize { got, want });
+    }
+    let photo = match mask {
+        Some(mask) => composite(photo, mask, background),
+        None => photo.to_vec(),
+    };
+    let layers = Layers {
+        photo: photo.into_flattened(),
+        ..Layers::default()
+    };
+    Ok(TrainingSample {
+        side,
+        factor,
+        pose,
+        draw,
+        layers,
     })
 }
 

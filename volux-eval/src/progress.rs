@@ -29,7 +29,7 @@ use volux_train::metrics::{BoxError, ProgressEvaluator};
 use crate::evaluate::{EvalError, Heads, Model, Source};
 use crate::geometry::{GeometryScore, render_angles};
 use crate::reprojection::{DEFAULT_TOLERANCE, Reprojection, reproject};
-use crate::sample_quality::{DataSets, LAYERS, distances, fake_sets};
+use crate::sample_quality::{DataSets, distances, fake_sets};
 use crate::swd::SwdOptions;
 
 /// How much the light evaluation measures.
@@ -109,8 +109,8 @@ pub struct ProgressEval {
     device: Device,
     options: ProgressOptions,
     data: DataSets,
-    /// The dataset's distance to itself per layer (x1e3, mean over levels).
-    floor: [f64; 3],
+    /// The dataset's distance to itself per compared layer (x1e3, mean over levels).
+    floor: Vec<f64>,
     /// The synthetic heads' view scores (`None` for folder datasets).
     data_views: Option<ViewScores>,
 }
@@ -136,7 +136,7 @@ impl ProgressEval {
             )));
         }
         let data = DataSets::draw(config, options.samples, options.batch)?;
-        let floor = data.floor(&options.swd)?.map(|s| s.mean);
+        let floor = data.floor(&options.swd)?.iter().map(|s| s.mean).collect();
         let g = config.generator();
         let data_views = match &config.data.source {
             SourceConfig::Synthetic { identities, .. } => {
@@ -173,11 +173,11 @@ impl ProgressEval {
     pub fn measure(&self, g: &Generator) -> Result<BTreeMap<String, f64>, EvalError> {
         let o = &self.options;
         let fake = fake_sets(g, &self.device, &self.config, &self.data, 0, o.batch)?;
-        let model = distances(&fake, &self.data.other, &o.swd)?;
+        let model = distances(&self.data.compared, &fake, &self.data.other, &o.swd)?;
         let mut scores = BTreeMap::new();
-        for (k, layer) in LAYERS.iter().enumerate() {
-            scores.insert(format!("swd_{layer}"), model[k].mean);
-            scores.insert(format!("swd_{layer}_floor"), self.floor[k]);
+        for (k, c) in self.data.compared.iter().enumerate() {
+            scores.insert(format!("swd_{}", c.name), model[k].mean);
+            scores.insert(format!("swd_{}_floor", c.name), self.floor[k]);
         }
         let source = Model {
             g,

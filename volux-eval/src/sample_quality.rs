@@ -2,13 +2,15 @@
 //! normals and relit image of generated samples against the training data. The fakes are
 //! rendered at the poses and under the lightings of dataset images, and compared with a second,
 //! disjoint draw of dataset images; the first draw against the second is the floor a perfect
-//! generator reaches at this sample count.
+//! generator reaches at this sample count. A photos-only dataset has no albedo, normals or
+//! relit layers: its one comparison is the relit image against the photos (what D_P judges).
 
 use std::sync::Arc;
 
 use burn::tensor::Device;
 use volux_data::batch::Batch;
 use volux_data::examples::Examples;
+use volux_data::layers::{Layer, Layers};
 use volux_data::training_sample::LightingDraw;
 use volux_envmap::LightMapSet;
 use volux_model::generator::Generator;
@@ -19,10 +21,47 @@ use volux_train::sampling;
 use crate::evaluate::EvalError;
 use crate::report::SwdRow;
 use crate::swd::{ImageSet, Swd, SwdOptions, swd};
-use crate::views::render_model;
+use crate::views::{Rendered, render_model};
 
-/// The compared layers, in the order of every `[ImageSet; 3]` here.
-pub const LAYERS: [&str; 3] = ["albedo", "normals", "relit"];
+/// One compared layer: its name in reports, the dataset's layer and the generated view's
+/// image compared with it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Compared {
+    pub name: &'static str,
+    pub real: Layer,
+    fake: Generated,
+}
+
+/// Which image of a generated view a comparison takes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Generated {
+    Albedo,
+    NormalsLo,
+    Relit,
+}
+
+/// The comparisons of a dataset that provides `provided`: albedo, normals and relit where
+/// they are there, else the relit image against the photos.
+pub fn compared(provided: &Layers<bool>) -> Vec<Compared> {
+    let all = [
+        ("albedo", Layer::AlbedoHi, Generated::Albedo),
+        ("normals", Layer::NormalsLo, Generated::NormalsLo),
+        ("relit", Layer::Relit, Generated::Relit),
+    ];
+    let mut out: Vec<Compared> = all
+        .into_iter()
+        .filter(|&(_, real, _)| *provided.get(real))
+        .map(|(name, real, fake)| Compared { name, real, fake })
+        .collect();
+    if out.is_empty() && provided.photo {
+        out.push(Compared {
+            name: "photo",
+            real: Layer::Photo,
+            fake: Generated::Relit,
+        });
+    }
+    out
+}
 
 /// Index of the second draw's first batch: far from the first draw's batches, so that the two
 /// share no image.
@@ -35,20 +74,33 @@ fn planar(pixels: &[[f32; 3]]) -> Vec<f32> {
         .collect()
 }
 
-/// Empty albedo / normals / relit sets at the output and volume resolutions.
-fn empty_sets(side: usize, side_lo: usize) -> [ImageSet; 3] {
-    [
-        ImageSet::new(side, 3),
-        ImageSet::new(side_lo, 3),
-        ImageSet::new(side, 3),
-    ]
+/// Empty sets of the `compared` layers at the output and volume resolutions.
+fn empty_sets(compared: &[Compared], side: usize, side_lo: usize) -> Vec<ImageSet> {
+    compared
+        .iter()
+        .map(|c| ImageSet::new(c.real.side(side, side / side_lo), 3))
+        .collect()
 }
 
-fn extend(sets: &mut [ImageSet; 3], batch: &Batch) {
-    sets[0].extend_planar(&batch.layers.albedo_hi);
-    sets[1].extend_planar(&batch.layers.normals_lo);
-    let relit: Vec<f32> = batch.layers.relit.iter().map(|v| 0.5 * (v + 1.0)).collect();
-    sets[2].extend_planar(&relit);
+fn extend(sets: &mut [ImageSet], compared: &[Compared], batch: &Batch) {
+    for (set, c) in sets.iter_mut().zip(compared) {
+        let values = batch.layers.get(c.real);
+        if c.real.is_srgb() {
+            let values: Vec<f32> = values.iter().map(|v| 0.5 * (v + 1.0)).collect();
+            set.extend_planar(&values);
+        } else {
+            set.extend_planar(values);
+        }
+    }
+}
+
+/// The image of `view` that `c` compares, planar.
+fn generated(view: &Rendered, c: &Compared) -> Vec<f32> {
+    planar(match c.fake {
+        Generated::Albedo => &view.albedo,
+        Generated::NormalsLo => &view.normals_lo,
+        Generated::Relit => &view.relit,
+    })
 }
 
 /// Two disjoint draws of `samples` dataset images, and the cameras and lightings of the first,
@@ -59,10 +111,12 @@ pub struct DataSets {
     /// Per image of the first draw: its camera pose and lighting.
     pub poses: Vec<Pose>,
     pub draws: Vec<LightingDraw>,
+    /// What is compared, in the order of every list of sets and distances here.
+    pub compared: Vec<Compared>,
     /// The first draw's layers (the floor's left side).
-    pub real: [ImageSet; 3],
+    pub real: Vec<ImageSet>,
     /// The second draw's layers: what fakes and the first draw are compared with.
-    pub other: [ImageSet; 3],
+    pub other: Vec<ImageSet>,
 }
 
 impl DataSets {
@@ -77,12 +131,14 @@ impl DataSets {
         let examples = Examples::open(&config.data, &config.data_hashed, &bank)?;
         let g = config.generator();
         let (side, side_lo) = (g.output_resolution, g.volume_resolution);
+        let compared = compared(&examples.provided());
         let mut out = DataSets {
             lights: bank.shared(),
             poses: Vec::with_capacity(samples),
             draws: Vec::with_capacity(samples),
-            real: empty_sets(side, side_lo),
-            other: empty_sets(side, side_lo),
+            real: empty_sets(&compared, side, side_lo),
+            other: empty_sets(&compared, side, side_lo),
+            compared,
         };
         let batches = samples.div_ceil(batch);
         for i in 0..batches as u64 {
@@ -91,8 +147,8 @@ impl DataSets {
             let o = examples.batch(OTHER_START + i, batch)?;
             out.poses.extend_from_slice(&a.poses);
             out.draws.extend_from_slice(&a.draws);
-            extend(&mut out.real, &a);
-            extend(&mut out.other, &o);
+            extend(&mut out.real, &out.compared, &a);
+            extend(&mut out.other, &out.compared, &o);
         }
         out.poses.truncate(samples);
         out.draws.truncate(samples);
@@ -111,23 +167,27 @@ impl DataSets {
         self.poses.is_empty()
     }
 
-    /// The first draw against the second, per layer.
-    pub fn floor(&self, options: &SwdOptions) -> Result<[Swd; 3], EvalError> {
-        distances(&self.real, &self.other, options)
+    /// The first draw against the second, per compared layer.
+    pub fn floor(&self, options: &SwdOptions) -> Result<Vec<Swd>, EvalError> {
+        distances(&self.compared, &self.real, &self.other, options)
     }
 }
 
-/// Per layer, `a` against `b`.
+/// Per compared layer, `a` against `b`.
 pub fn distances(
-    a: &[ImageSet; 3],
-    b: &[ImageSet; 3],
+    compared: &[Compared],
+    a: &[ImageSet],
+    b: &[ImageSet],
     options: &SwdOptions,
-) -> Result<[Swd; 3], EvalError> {
-    let d = |k: usize| -> Result<Swd, EvalError> {
-        tracing::info!("sample quality: {}", LAYERS[k]);
-        Ok(swd(&a[k], &b[k], options)?)
-    };
-    Ok([d(0)?, d(1)?, d(2)?])
+) -> Result<Vec<Swd>, EvalError> {
+    compared
+        .iter()
+        .zip(a.iter().zip(b))
+        .map(|(c, (a, b))| {
+            tracing::info!("sample quality: {}", c.name);
+            Ok(swd(a, b, options)?)
+        })
+        .collect()
 }
 
 /// The generator's layers for latents `first_seed ..`, one per image of `data`'s first draw, at
@@ -139,8 +199,8 @@ pub fn fake_sets(
     data: &DataSets,
     first_seed: u64,
     batch: usize,
-) -> Result<[ImageSet; 3], EvalError> {
-    let mut fake = empty_sets(g.output_resolution(), g.volume_resolution);
+) -> Result<Vec<ImageSet>, EvalError> {
+    let mut fake = empty_sets(&data.compared, g.output_resolution(), g.volume_resolution);
     let z_dim = config.generator().mapping.z_dim;
     let n = data.len();
     for start in (0..n).step_by(batch.max(1)) {
@@ -161,9 +221,9 @@ pub fn fake_sets(
             config.data.background,
         )?;
         for v in &views {
-            fake[0].images.push(planar(&v.albedo));
-            fake[1].images.push(planar(&v.normals_lo));
-            fake[2].images.push(planar(&v.relit));
+            for (set, c) in fake.iter_mut().zip(&data.compared) {
+                set.images.push(generated(v, c));
+            }
         }
     }
     Ok(fake)
@@ -181,15 +241,42 @@ pub fn sample_quality(
 ) -> Result<Vec<SwdRow>, EvalError> {
     let data = DataSets::draw(config, samples, batch)?;
     let fake = fake_sets(g, device, config, &data, first_seed, batch)?;
-    let model = distances(&fake, &data.other, options)?;
+    let model = distances(&data.compared, &fake, &data.other, options)?;
     let floor = data.floor(options)?;
-    Ok(LAYERS
+    Ok(data
+        .compared
         .iter()
         .zip(model.into_iter().zip(floor))
-        .map(|(layer, (model, data))| SwdRow {
-            layer: layer.to_string(),
+        .map(|(c, (model, data))| SwdRow {
+            layer: c.name.to_string(),
             model,
             data,
         })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_dataset_is_compared_on_the_layers_it_has() {
+        let names = |provided: Layers<bool>| -> Vec<&str> {
+            compared(&provided).iter().map(|c| c.name).collect()
+        };
+        assert_eq!(
+            names(Layers::from_fn(|_| true)),
+            ["albedo", "normals", "relit"]
+        );
+        // Photos alone: the relit image against the photos, at the output resolution.
+        let photos = compared(&Layers::from_fn(|l| l == Layer::Photo));
+        assert_eq!(photos.len(), 1);
+        assert_eq!((photos[0].name, photos[0].real), ("photo", Layer::Photo));
+        assert_eq!(photos[0].fake, Generated::Relit);
+        let sets = empty_sets(&photos, 64, 32);
+        assert_eq!(sets.len(), 1);
+        let normals = compared(&Layers::from_fn(|l| l == Layer::NormalsLo));
+        assert_eq!(empty_sets(&normals, 64, 32)[0].side, 32);
+        assert!(compared(&Layers::default()).is_empty());
+    }
 }

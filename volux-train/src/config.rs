@@ -15,7 +15,7 @@ use volux_model::volume_rendering::Shading;
 use volux_data::pose_distribution::PoseDistribution;
 
 use crate::fake_poses::FakePoses;
-use crate::losses::LossWeights;
+use crate::losses::{LeftOut, LossWeights};
 use crate::schedule::ScheduleConfig;
 
 /// A config that cannot be used, with the file it came from.
@@ -303,6 +303,9 @@ pub struct TrainConfig {
     pub text: String,
     /// Where it was read from.
     pub path: PathBuf,
+    /// Adversarial terms of `[loss]` whose reals the dataset does not provide: their weights
+    /// in `loss` are 0 ([`LossWeights::restricted_to`]).
+    pub left_out: Vec<LeftOut>,
 }
 
 impl TrainConfig {
@@ -323,16 +326,22 @@ impl TrainConfig {
             },
         })?;
         let file: ConfigFile = config_file::parse(&text, path)?;
+        let provided = data.provided().map_err(|e| ConfigError::Data {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })?;
+        let (loss, left_out) = file.loss.restricted_to(&provided);
         let config = TrainConfig {
             model: file.model,
             train: file.train,
             schedule: file.schedule,
-            loss: file.loss,
+            loss,
             output: file.output,
             data,
             data_hashed,
             text,
             path: path.to_path_buf(),
+            left_out,
         };
         config
             .validate()
@@ -397,6 +406,15 @@ impl TrainConfig {
         }
         self.loss.validate()?;
         self.schedule.validate(self.blocks())?;
+        let stage_one = self.loss.albedo > 0.0 || self.loss.geometry > 0.0;
+        if self.schedule.stage1_kimg > 0.0 && !stage_one && !self.left_out.is_empty() {
+            let terms: Vec<String> = self.left_out.iter().map(ToString::to_string).collect();
+            return Err(format!(
+                "schedule.stage1_kimg = {}: stage 1 trains albedo and geometry, and the dataset provides neither ({} left out); set stage1_kimg = 0 and fade_kimg = 0 to train on what it has from the start",
+                self.schedule.stage1_kimg,
+                terms.join(", ")
+            ));
+        }
         let o = &self.output;
         for (key, v) in [
             ("grid_kimg", o.grid_kimg),

@@ -9,6 +9,7 @@
 use burn::tensor::Tensor;
 use burn::tensor::activation::softplus;
 use serde::{Deserialize, Serialize};
+use volux_data::layers::{Layer, Layers};
 use volux_model::discriminator::{Discriminator, r1_penalty};
 use volux_model::upsampler::bilinear_upsample;
 
@@ -147,6 +148,55 @@ impl LossWeights {
             ("path", self.path),
         ]
     }
+
+    /// The weights with every adversarial term whose reals the dataset does not `provide`
+    /// set to 0 (so that its discriminator is neither built nor run), and the terms left out
+    /// for that reason with the layers they lack. The path loss needs no data.
+    pub fn restricted_to(&self, provided: &Layers<bool>) -> (LossWeights, Vec<LeftOut>) {
+        let mut w = *self;
+        let mut left_out = Vec::new();
+        for (term, needs) in TERM_LAYERS {
+            let missing: Vec<Layer> = needs
+                .iter()
+                .copied()
+                .filter(|&l| !provided.get(l))
+                .collect();
+            let weight = match term {
+                "albedo" => &mut w.albedo,
+                "geometry" => &mut w.geometry,
+                "shading" => &mut w.shading,
+                _ => &mut w.photo,
+            };
+            if !missing.is_empty() && *weight > 0.0 {
+                *weight = 0.0;
+                left_out.push(LeftOut { term, missing });
+            }
+        }
+        (w, left_out)
+    }
+}
+
+/// Each adversarial term with the layers of the reals its discriminator judges.
+pub const TERM_LAYERS: [(&str, &[Layer]); 4] = [
+    ("albedo", &[Layer::AlbedoLo, Layer::AlbedoHi]),
+    ("geometry", &[Layer::NormalsLo]),
+    ("shading", &[Layer::Relit, Layer::Diffuse, Layer::Specular]),
+    ("photo", &[Layer::Photo]),
+];
+
+/// An adversarial term left out because the dataset lacks its reals.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct LeftOut {
+    pub term: &'static str,
+    /// The layers it would judge that the dataset does not provide.
+    pub missing: Vec<Layer>,
+}
+
+impl std::fmt::Display for LeftOut {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let names: Vec<&str> = self.missing.iter().map(|l| l.name()).collect();
+        write!(f, "{} (no {})", self.term, names.join(", "))
+    }
 }
 
 #[cfg(test)]
@@ -165,6 +215,38 @@ mod tests {
 
     fn softplus64(x: f64) -> f64 {
         x.max(0.0) + (-x.abs()).exp().ln_1p()
+    }
+
+    #[test]
+    fn terms_without_their_reals_are_left_out() {
+        let w = LossWeights::default();
+        let (all, none) = w.restricted_to(&Layers::from_fn(|_| true));
+        assert_eq!((all, none), (w, vec![]));
+        let (photos, left_out) = w.restricted_to(&Layers::from_fn(|l| l == Layer::Photo));
+        assert_eq!(
+            photos,
+            LossWeights {
+                albedo: 0.0,
+                geometry: 0.0,
+                shading: 0.0,
+                ..w
+            }
+        );
+        let said: Vec<String> = left_out.iter().map(ToString::to_string).collect();
+        assert_eq!(
+            said,
+            [
+                "albedo (no albedo_lo, albedo_hi)",
+                "geometry (no normals_lo)",
+                "shading (no relit, diffuse, specular)"
+            ]
+        );
+        // A term already off is not reported as left out; one missing layer is enough.
+        let no_shading = LossWeights { shading: 0.0, ..w };
+        let (_, left_out) = no_shading.restricted_to(&Layers::from_fn(|l| l != Layer::Specular));
+        assert!(left_out.is_empty());
+        let (only, left_out) = w.restricted_to(&Layers::from_fn(|l| l != Layer::NormalsLo));
+        assert_eq!((only.geometry, left_out.len()), (0.0, 1));
     }
 
     #[test]

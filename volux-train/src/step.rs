@@ -110,20 +110,23 @@ fn pairs<'a>(
     w: &LossWeights,
     fade: Option<&[f64]>,
 ) -> Vec<Pair<'a>> {
-    let real_shading = reals.map(|r| {
-        let factor = r.relit.dims()[2] / r.albedo_lo.dims()[2];
-        real_shading_condition(
-            r.relit.clone(),
-            r.diffuse.clone(),
-            r.specular.clone(),
+    // Where the dataset lacks a term's reals the term is left out (`TrainConfig::left_out`),
+    // so an active term always finds them.
+    let real_shading = reals.and_then(|r| {
+        let (relit, low) = (r.relit.clone()?, r.normals_lo.as_ref()?);
+        let factor = relit.dims()[2] / low.dims()[2];
+        Some(real_shading_condition(
+            relit,
+            r.diffuse.clone()?,
+            r.specular.clone()?,
             factor,
-        )
+        ))
     });
     let entries = [
         (
             DiscriminatorRole::AlbedoLow,
             fakes.albedo_lo.clone(),
-            reals.map(|r| r.albedo_lo.clone()),
+            reals.and_then(|r| r.albedo_lo.clone()),
             w.albedo,
         ),
         (
@@ -132,13 +135,13 @@ fn pairs<'a>(
                 .albedo_hi
                 .as_ref()
                 .map(|a| faded_input(a.clone(), fade)),
-            reals.map(|r| faded_input(r.albedo_hi.clone(), fade)),
+            reals.and_then(|r| Some(faded_input(r.albedo_hi.clone()?, fade))),
             w.albedo,
         ),
         (
             DiscriminatorRole::Geometry,
             fakes.geometry.clone(),
-            reals.map(|r| r.normals_lo.clone()),
+            reals.and_then(|r| r.normals_lo.clone()),
             w.geometry,
         ),
         (
@@ -150,7 +153,7 @@ fn pairs<'a>(
         (
             DiscriminatorRole::Photo,
             fakes.photo.clone(),
-            reals.map(|r| r.photo.clone()),
+            reals.and_then(|r| r.photo.clone()),
             w.photo,
         ),
     ];
@@ -326,7 +329,7 @@ pub fn train_step(
     for ([_, d_name, r1_name], _, disc, fake, real, weight) in
         pairs(d, &fakes, Some(inputs.reals), &w, fade)
     {
-        let real = real.expect("reals given");
+        let real = real.expect("the config leaves out terms whose reals the dataset lacks");
         let (real_logits, fake_logits, r1) = match inputs.r1 {
             Some((gamma, interval)) if gamma > 0.0 => {
                 let (logits, penalty) =
@@ -381,6 +384,7 @@ mod tests {
     use crate::config::TrainConfig;
     use crate::losses::area_downsample;
     use crate::progressive::faded_input;
+    use volux_data::layers::Layers;
 
     /// The discriminators see what the step hands them: the reals' shading brought to the
     /// fakes' resolution, and the high-resolution albedo (real and fake) faded while the
@@ -395,7 +399,7 @@ mod tests {
         let random = |c, side| {
             Tensor::<4>::random([4, c, side, side], Distribution::Uniform(0.0, 1.0), &device)
         };
-        let reals = BatchTensors {
+        let reals = Layers {
             photo: random(3, 64),
             relit: random(3, 64),
             albedo_hi: random(3, 64),
@@ -405,6 +409,7 @@ mod tests {
             diffuse: random(3, 64),
             specular: random(3, 64),
         };
+        let tensors: BatchTensors = reals.map(|_, t| Some(t.clone()));
         let fake_hi = random(3, 64);
         let fakes = Fakes {
             albedo_lo: Some(random(3, 32)),
@@ -420,7 +425,7 @@ mod tests {
         };
         let w = config.loss;
 
-        let fading = pairs(&d, &fakes, Some(&reals), &w, Some(&[0.0]));
+        let fading = pairs(&d, &fakes, Some(&tensors), &w, Some(&[0.0]));
         assert_eq!(fading.len(), 5);
         let (fake, real) = find(&fading, DiscriminatorRole::AlbedoHigh);
         assert!(same(
@@ -437,7 +442,7 @@ mod tests {
         );
         assert!(same(&real, want));
 
-        let grown = pairs(&d, &fakes, Some(&reals), &w, None);
+        let grown = pairs(&d, &fakes, Some(&tensors), &w, None);
         let (fake, real) = find(&grown, DiscriminatorRole::AlbedoHigh);
         assert!(same(&real, reals.albedo_hi.clone()) && same(&fake, fake_hi));
     }

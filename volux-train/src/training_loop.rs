@@ -215,6 +215,23 @@ impl Trainer {
                 _ => "the camera prior [train.pose_prior]",
             }
         );
+        let running: Vec<&str> = config
+            .loss
+            .named()
+            .into_iter()
+            .filter(|&(_, w)| w > 0.0)
+            .map(|(term, _)| term)
+            .collect();
+        if config.left_out.is_empty() {
+            tracing::info!("loss terms: {}", running.join(", "));
+        } else {
+            let left_out: Vec<String> = config.left_out.iter().map(ToString::to_string).collect();
+            tracing::info!(
+                "loss terms: {}; left out, the dataset lacks their reals: {}",
+                running.join(", "),
+                left_out.join(", ")
+            );
+        }
         let metrics_path = options.out.join(run_folder::METRICS);
         let metrics =
             MetricsLog::open(&metrics_path, state.step).map_err(|e| io_error(&metrics_path, e))?;

@@ -310,6 +310,89 @@ fn a_folder_holding_a_run_is_refused_unless_resumed_or_forced() {
     );
 }
 
+/// A folder of four 64x64 photos alone (no albedo/ or normals/), one with a mask, and the
+/// tiny config reading it with `layers = ["photo"]` and the schedule `stage`.
+fn photos_only(dir: &Path, stage: &str) -> String {
+    let root = dir.join("photos_only");
+    std::fs::create_dir_all(root.join("photos")).unwrap();
+    std::fs::create_dir_all(root.join("masks")).unwrap();
+    for k in 0..4u8 {
+        let pixels: Vec<[u8; 3]> = (0..64 * 64)
+            .map(|i| [(i % 64 * 4) as u8, (i / 64 * 4) as u8, 60 * k])
+            .collect();
+        let path = root.join(format!("photos/p{k}.png"));
+        volux_envmap::io::save_png(&path, 64, 64, &pixels).unwrap();
+    }
+    let mask: Vec<[u8; 3]> = (0..64 * 64)
+        .map(|i| [if i % 64 < 40 { 255 } else { 0 }; 3])
+        .collect();
+    volux_envmap::io::save_png(&root.join("masks/p0.png"), 64, 64, &mask).unwrap();
+    let text = TINY
+        .replace(
+            "[schedule]\nstage1_kimg = 0.004\nstage2_kimg = 0.004\nfade_kimg = 0.002\n",
+            stage,
+        )
+        .replace(
+            "[data.lighting]",
+            "[data.source]\nkind = \"folder\"\npath = \"photos_only\"\nlayers = [\"photo\"]\n\n[data.lighting]",
+        );
+    assert!(
+        text.contains("layers") && text.contains(stage),
+        "TINY changed"
+    );
+    text
+}
+
+#[test]
+fn photos_alone_train_with_the_photo_discriminator_only() {
+    let _one = ONE_RUN_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    // A stage 1 has nothing to train on photos alone: refused, saying what to change.
+    let with_stage_one = photos_only(
+        dir.path(),
+        "[schedule]\nstage1_kimg = 0.004\nstage2_kimg = 0.004\nfade_kimg = 0.002\n",
+    );
+    let path = dir.path().join("tiny.toml");
+    std::fs::write(&path, &with_stage_one).unwrap();
+    let e = volux_envmap::error::chain(&TrainConfig::load(&path).unwrap_err());
+    assert!(
+        e.contains("stage1_kimg = 0") && e.contains("albedo (no albedo_lo, albedo_hi)"),
+        "{e}"
+    );
+
+    let text = photos_only(
+        dir.path(),
+        "[schedule]\nstage1_kimg = 0.0\nstage2_kimg = 0.008\nfade_kimg = 0.0\n",
+    );
+    let c = config(dir.path(), &text);
+    let left_out: Vec<&str> = c.left_out.iter().map(|l| l.term).collect();
+    assert_eq!(left_out, ["albedo", "geometry", "shading"]);
+    assert_eq!(
+        (c.loss.albedo, c.loss.geometry, c.loss.shading),
+        (0.0, 0.0, 0.0)
+    );
+    assert!(c.loss.photo > 0.0 && c.loss.path > 0.0);
+    let out = dir.path().join("run");
+    let mut t = Trainer::new(c, options(&out, false, None)).unwrap();
+    let (finish, seen) = losses(&mut t);
+    assert_eq!(finish, Finish::Done);
+    assert_eq!(seen.len(), 4);
+    for (step, stage, losses) in &seen {
+        assert_eq!(*stage, Stage::Two);
+        let mut names: Vec<&str> = losses.iter().map(|(k, _)| k.as_str()).collect();
+        names.sort_unstable();
+        let mut want = vec!["D_photo", "D_total", "G_photo", "G_total", "path"];
+        if step % 2 == 0 {
+            want.push("R1_photo");
+        }
+        want.sort_unstable();
+        assert_eq!(names, want, "step {step}");
+        assert!(losses.iter().all(|(_, v)| v.is_finite()), "{losses:?}");
+    }
+    let saved = checkpoint::read_state(&checkpoint::latest(&out).unwrap()).unwrap();
+    assert_eq!(saved.discriminators, ["photo"]);
+}
+
 /// Multiplies every float parameter by NaN.
 struct Poison;
 

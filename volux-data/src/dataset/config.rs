@@ -9,8 +9,9 @@ use volux_envmap::io::srgb_to_linear;
 
 use super::{DataError, LightingError};
 use crate::config_file::{self, BoxError, ConfigFileError};
-use crate::folder_dataset::FolderDataset;
+use crate::folder_dataset::{FolderContent, FolderDataset};
 use crate::hdri_collection::{HdriCollection, HdriCollectionConfig};
+use crate::layers::Layers;
 use crate::light_map_bank::LightMapBank;
 use crate::pose_distribution::PoseDistribution;
 use crate::relighting::DEFAULT_SPECULAR_WEIGHTS;
@@ -37,7 +38,71 @@ pub enum SourceConfig {
         /// Specular weights of the lobes 1, 16, 32, 64.
         #[serde(default = "default_weights")]
         specular_weights: [f32; 4],
+        /// The layers the folder provides: `["photo", "albedo", "normals"]` (the default) or
+        /// `["photo"]` for photos alone ([`FolderContent`]).
+        #[serde(default = "all_folder_layers")]
+        layers: Vec<FolderLayer>,
     },
+}
+
+/// A layer a folder dataset can provide (`layers` of `[data.source]`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FolderLayer {
+    Photo,
+    Albedo,
+    Normals,
+}
+
+impl FolderLayer {
+    /// The layer's name in a config.
+    pub const fn name(self) -> &'static str {
+        match self {
+            FolderLayer::Photo => "photo",
+            FolderLayer::Albedo => "albedo",
+            FolderLayer::Normals => "normals",
+        }
+    }
+}
+
+fn all_folder_layers() -> Vec<FolderLayer> {
+    vec![
+        FolderLayer::Photo,
+        FolderLayer::Albedo,
+        FolderLayer::Normals,
+    ]
+}
+
+/// What a folder dataset with `layers` provides, or why no such dataset can be: the photo
+/// is required, and albedo and normals come together (module docs of
+/// [`crate::folder_dataset`]).
+pub fn folder_content(layers: &[FolderLayer]) -> Result<FolderContent, String> {
+    let has = |l: FolderLayer| layers.contains(&l);
+    let listed = || {
+        let names: Vec<String> = layers.iter().map(|l| format!("\"{}\"", l.name())).collect();
+        format!("source.layers = [{}]", names.join(", "))
+    };
+    if let Some(k) = (1..layers.len()).find(|&k| layers[..k].contains(&layers[k])) {
+        return Err(format!(
+            "{}: \"{}\" is listed twice",
+            listed(),
+            layers[k].name()
+        ));
+    }
+    if !has(FolderLayer::Photo) {
+        return Err(format!(
+            "{}: a folder dataset always has its photos; list \"photo\"",
+            listed()
+        ));
+    }
+    match (has(FolderLayer::Albedo), has(FolderLayer::Normals)) {
+        (true, true) => Ok(FolderContent::Intrinsics),
+        (false, false) => Ok(FolderContent::Photos),
+        _ => Err(format!(
+            "{}: albedo and normals come together (the relit, diffuse and specular layers need both): list both or neither",
+            listed()
+        )),
+    }
 }
 
 fn default_identities() -> u64 {
@@ -199,6 +264,19 @@ impl DataConfig {
         }
         if let Some(c) = self.cache.as_mut() {
             join(&mut c.dir);
+        }
+    }
+
+    /// Which layers the examples have: every one for the synthetic heads and a folder with
+    /// intrinsics, the photo alone for a photos-only folder. An error names a bad
+    /// `source.layers`.
+    pub fn provided(&self) -> Result<Layers<bool>, DataError> {
+        match &self.source {
+            SourceConfig::Synthetic { .. } => Ok(Layers::from_fn(|_| true)),
+            SourceConfig::Folder { layers, .. } => {
+                let content = folder_content(layers).map_err(DataError::Config)?;
+                Ok(content.provided())
+            }
         }
     }
 

@@ -3,7 +3,7 @@ use volux_model::pose::Pose;
 use super::*;
 use std::path::Path;
 
-use crate::layers::Layer;
+use crate::layers::{Layer, Layers};
 use crate::relighting::DEFAULT_SPECULAR_WEIGHTS;
 use volux_envmap::error::chain;
 use volux_envmap::{EnvMap, PreconvolveOptions, preconvolve};
@@ -207,6 +207,11 @@ fn folder_photos_with_masks_are_composited_over_the_background_like_the_relit_im
         source: SourceConfig::Folder {
             path: root.to_path_buf(),
             specular_weights: DEFAULT_SPECULAR_WEIGHTS,
+            layers: vec![
+                FolderLayer::Photo,
+                FolderLayer::Albedo,
+                FolderLayer::Normals,
+            ],
         },
         ..toml::from_str("").unwrap()
     };
@@ -275,7 +280,9 @@ fn batches_match_what_the_small_generator_makes() {
     let batch = data.batch(0, 2).unwrap();
     let device = Device::flex();
     device.seed(1);
-    let real = batch.to_tensors(&device);
+    let real = batch
+        .to_tensors(&device)
+        .map(|_, t| t.clone().expect("every layer"));
     let lighting = batch.lighting(&lights, &device).unwrap();
     let generator = g_config.init(&device).unwrap();
     let z = Tensor::<2>::random(
@@ -311,4 +318,123 @@ fn batches_match_what_the_small_generator_makes() {
     let mut bad = batch.clone();
     bad.draws[1].map = 7;
     assert!(bad.lighting(&lights, &device).is_err());
+}
+
+/// A folder of photos alone, 16x16 with a mask on the first: trained at 8x8 (area-averaged).
+fn photos_only_folder(root: &Path) {
+    use crate::folder_dataset::{FolderSample, write_dataset};
+    let side = 16;
+    let n = side * side;
+    let mask: Vec<f32> = (0..n).map(|i| f32::from(u8::from(i % side < 8))).collect();
+    let sample = |stem: &str, value: f32| FolderSample {
+        stem: stem.into(),
+        photo: vec![[value, 0.5, 0.25]; n],
+        image: IntrinsicImage {
+            width: side,
+            height: side,
+            albedo: vec![[0.5; 3]; n],
+            normals: vec![[0.0, 0.0, 1.0]; n],
+            mask: mask.clone(),
+            pose: Pose::new(0.0, 0.0),
+        },
+        renormalised: 0,
+        degenerate: 0,
+    };
+    write_dataset(root, &[sample("a", 0.8), sample("b", 0.2)]).unwrap();
+    // Photos alone: no intrinsic layers, one mask kept.
+    std::fs::remove_dir_all(root.join("albedo")).unwrap();
+    std::fs::remove_dir_all(root.join("normals")).unwrap();
+    std::fs::remove_file(root.join("masks/b.png")).unwrap();
+}
+
+fn photos_only_config(root: &Path, layers: &str) -> DataConfig {
+    let text = format!(
+        "resolution = 8\nvolume_resolution = 4\nbackground = [0.0, 0.0, 1.0]\n[source]\nkind = \"folder\"\npath = {:?}\nlayers = {layers}\n",
+        root.display().to_string()
+    );
+    toml::from_str(&text).unwrap()
+}
+
+#[test]
+fn a_folder_of_photos_alone_makes_examples_of_the_photo_layer_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("photos_only");
+    photos_only_folder(&root);
+    // Without `layers` the folder is refused, and the message says how to use it.
+    let all = photos_only_config(&root, "[\"photo\", \"albedo\", \"normals\"]");
+    let e = chain(&Dataset::new(&all, bank()).err().unwrap());
+    assert!(
+        e.contains("missing albedo/, normals/") && e.contains("layers = [\"photo\"]"),
+        "{e}"
+    );
+
+    let config = photos_only_config(&root, "[\"photo\"]");
+    assert_eq!(
+        config.provided().unwrap(),
+        Layers::from_fn(|l| l == Layer::Photo)
+    );
+    let data = Dataset::new(&config, bank()).unwrap();
+    assert_eq!(data.provided(), config.provided().unwrap());
+    let mut seen = [false; 2];
+    for i in 0..16 {
+        let e = data.example(i).unwrap();
+        assert_eq!(e.layers.photo.len(), 3 * 8 * 8);
+        assert!(
+            e.layers
+                .iter()
+                .all(|(l, v)| v.is_empty() == (l != Layer::Photo))
+        );
+        let photo = e.rgb(Layer::Photo);
+        // "a" has a mask: its right half is the background; "b" has none: all photo.
+        let (left, right) = (photo[0], photo[7]);
+        if (left[0] - 0.8).abs() < 1e-3 {
+            seen[0] = true;
+            assert!(
+                (right[2] - 1.0).abs() < 1e-6 && right[0].abs() < 1e-6,
+                "{right:?}"
+            );
+        } else {
+            seen[1] = true;
+            assert!((left[0] - 0.2).abs() < 1e-3 && (right[0] - 0.2).abs() < 1e-3);
+        }
+    }
+    assert_eq!(seen, [true, true], "both photos drawn");
+    let batch = data.batch(0, 2).unwrap();
+    assert_eq!(batch.provided(), data.provided());
+}
+
+#[test]
+fn folder_layers_must_be_the_photo_alone_or_with_albedo_and_normals() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("photos_only");
+    photos_only_folder(&root);
+    for (layers, want) in [
+        ("[\"albedo\", \"normals\"]", "list \"photo\""),
+        (
+            "[\"photo\", \"albedo\"]",
+            "albedo and normals come together",
+        ),
+        (
+            "[\"photo\", \"normals\"]",
+            "albedo and normals come together",
+        ),
+        ("[\"photo\", \"photo\"]", "\"photo\" is listed twice"),
+    ] {
+        let config = photos_only_config(&root, layers);
+        let e = config.provided().unwrap_err().to_string();
+        assert!(
+            e.contains(want) && e.contains("source.layers"),
+            "{layers}: {e}"
+        );
+        let e = chain(&Dataset::new(&config, bank()).err().unwrap());
+        assert!(e.contains(want), "{layers}: {e}");
+    }
+    let unknown = format!(
+        "[source]\nkind = \"folder\"\npath = {:?}\nlayers = [\"depth\"]\n",
+        root.display().to_string()
+    );
+    let e = toml::from_str::<DataConfig>(&unknown)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("depth"), "{e}");
 }

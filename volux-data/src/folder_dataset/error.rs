@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use volux_envmap::EnvMapError;
 
-use super::{ALBEDO, LISTED_NAMES, MASKS, NORMALS, PHOTOS, POSES_FILE};
+use super::{ALBEDO, FolderContent, LISTED_NAMES, MASKS, NORMALS, PHOTOS, POSES_FILE};
 
 /// What is wrong with a folder dataset, or with samples to write as one. Every message names
 /// the file, folder or name at fault.
@@ -19,14 +19,26 @@ pub enum FolderError {
     NotAFolder { path: PathBuf },
     /// Required folders of the layout are missing.
     #[error(
-        "{}: missing {}; a folder dataset holds photos/, albedo/ and normals/ (masks/ and {POSES_FILE} are optional)",
+        "{}: missing {}; {}",
         root.display(),
-        folders.iter().map(|f| format!("{f}/")).collect::<Vec<_>>().join(", ")
+        folders.iter().map(|f| format!("{f}/")).collect::<Vec<_>>().join(", "),
+        match content {
+            FolderContent::Intrinsics => format!(
+                "a folder dataset holds photos/, albedo/ and normals/ (masks/ and {POSES_FILE} are optional); for photos alone set layers = [\"photo\"] in [data.source]"
+            ),
+            FolderContent::Photos => format!(
+                "a photos-only dataset holds photos/ (masks/ and {POSES_FILE} are optional)"
+            ),
+        }
     )]
     MissingFolders {
         root: PathBuf,
         folders: Vec<&'static str>,
+        content: FolderContent,
     },
+    /// Intrinsic layers asked of a photos-only dataset.
+    #[error("{}: a photos-only dataset has no albedo or normals", root.display())]
+    NoIntrinsics { root: PathBuf },
     /// `photos/` holds no photo.
     #[error(
         "{}: no photos (.png, .jpg or .jpeg){}",

@@ -583,10 +583,14 @@ fn empty_and_missing_folders_are_errors_naming_them() {
         open_err(&root).to_string(),
         format!(
             "{}: missing albedo/, normals/; a folder dataset holds photos/, albedo/ and \
-             normals/ (masks/ and poses.csv are optional)",
+             normals/ (masks/ and poses.csv are optional); for photos alone set \
+             layers = [\"photo\"] in [data.source]",
             root.display()
         )
     );
+    // A photos-only dataset needs photos/ alone (and still some photos).
+    let e = FolderDataset::open_with(&root, FolderContent::Photos).unwrap_err();
+    assert!(matches!(e, FolderError::NoPhotos { .. }), "{e:?}");
     fs::create_dir(root.join("albedo")).unwrap();
     fs::write(root.join("normals"), "").unwrap();
     let e = open_err(&root);
@@ -732,4 +736,46 @@ fn samples_without_foreground_or_usable_normals_are_errors_naming_the_file() {
     }
     io::save_exr(&root.join("normals/a.exr"), W, H, &noisy).unwrap();
     assert!(ds().load(0).is_ok());
+}
+
+#[test]
+fn a_photos_only_dataset_reads_photos_masks_and_poses_alone() {
+    let (_dir, root, samples) = written();
+    fs::remove_file(root.join("masks/c.png")).unwrap();
+    // The intrinsic folders may be there (they are not read) or not.
+    let with = FolderDataset::open_with(&root, FolderContent::Photos).unwrap();
+    fs::remove_dir_all(root.join("albedo")).unwrap();
+    fs::remove_dir_all(root.join("normals")).unwrap();
+    let ds = FolderDataset::open_with(&root, FolderContent::Photos).unwrap();
+    assert_eq!((ds.len(), with.len()), (3, 3));
+    assert_eq!(ds.content(), FolderContent::Photos);
+    for (i, want) in samples.iter().enumerate() {
+        let got = ds.load_photo(i).unwrap();
+        assert_eq!(got.stem, want.stem);
+        assert_eq!((got.width, got.height), (W, H));
+        assert_eq!(got.pose, want.image.pose);
+        for (g, w) in got.photo.iter().zip(&want.photo) {
+            assert!((0..3).all(|k| (g[k] - w[k]).abs() <= 0.5 / 255.0 + 1e-6));
+        }
+        // Only c has no mask file; none is made up for it.
+        assert_eq!(got.mask.is_some(), want.stem != "c", "{}", want.stem);
+    }
+    let e = ds.load(0).unwrap_err();
+    assert!(matches!(e, FolderError::NoIntrinsics { .. }), "{e:?}");
+    assert!(e.to_string().contains("photos-only"), "{e}");
+    // The full layout is still refused without them, and the error says how to go on.
+    let e = open_err(&root).to_string();
+    assert!(e.contains("layers = [\"photo\"]"), "{e}");
+
+    // An empty mask is refused as it is in a full dataset.
+    io::save_png(&root.join("masks/a.png"), W, H, &vec![[0u8; 3]; W * H]).unwrap();
+    let e = ds.load_photo(0).unwrap_err();
+    assert!(matches!(e, FolderError::NoForeground { .. }), "{e:?}");
+    // A mask of another size names the file.
+    io::save_png(&root.join("masks/a.png"), 2, 2, &[[255u8; 3]; 4]).unwrap();
+    let e = ds.load_photo(0).unwrap_err();
+    assert!(
+        matches!(e, FolderError::SizeMismatch { layer: "mask", .. }),
+        "{e:?}"
+    );
 }
