@@ -20,7 +20,9 @@ use crate::layers::Layers;
 use crate::pose_distribution::PoseDistribution;
 use crate::relighting::IntrinsicImage;
 use crate::synthetic_head::{self, RenderSettings, SyntheticHead};
-use crate::training_sample::{Intrinsics, LightingDraw, TrainingSample, make_sample};
+use crate::training_sample::{
+    Intrinsics, LightingDraw, TrainingSample, make_photo_sample, make_sample,
+};
 
 mod config;
 mod error;
@@ -209,13 +211,16 @@ impl Dataset {
                         self.side,
                     )
                     .map_err(size_error)?;
-                    let intrinsics = Intrinsics::PhotoOnly {
-                        side: self.side,
-                        photo: &photo,
-                        mask: mask.as_deref(),
-                        pose: loaded.pose,
-                    };
-                    return finish(intrinsics, draw, &stem);
+                    return make_photo_sample(
+                        self.side,
+                        &photo,
+                        mask.as_deref(),
+                        loaded.pose,
+                        draw,
+                        self.background,
+                        self.factor,
+                    )
+                    .map_err(|source| DataError::Sample { stem, source });
                 }
                 let loaded = dataset.load(i)?;
                 let stem = loaded.stem;
@@ -254,6 +259,33 @@ impl Dataset {
     }
 }
 
+/// The factor `k` by which a `(w, h)` folder image is averaged down to `side x side`, or its
+/// size if it cannot be (not square, or its side not a multiple of `side`).
+fn fit_factor((w, h): (usize, usize), side: usize) -> Result<usize, (usize, usize)> {
+    if w != h || w % side != 0 {
+        return Err((w, h));
+    }
+    Ok(w / side)
+}
+
+/// A photo of side `w` area-averaged over `k x k` blocks in linear light.
+fn average_photo(photo: &[Rgb], w: usize, k: usize) -> Vec<Rgb> {
+    let linear: Vec<Rgb> = photo.iter().map(|c| c.map(srgb_to_linear)).collect();
+    crate::training_sample::area_downsample(&linear, w, k)
+        .into_iter()
+        .map(|c| c.map(linear_to_srgb))
+        .collect()
+}
+
+/// A mask of side `w` area-averaged over `k x k` blocks.
+fn average_mask(mask: &[f32], w: usize, k: usize) -> Vec<f32> {
+    let mask_rgb: Vec<[f32; 3]> = mask.iter().map(|&m| [m; 3]).collect();
+    crate::training_sample::area_downsample(&mask_rgb, w, k)
+        .into_iter()
+        .map(|m| m[0])
+        .collect()
+}
+
 /// Brings a photo of `(width, height)` and its mask (if any) to `side x side` by area
 /// averaging, the photo in linear light (the side must be a multiple of `side`).
 #[allow(clippy::type_complexity)]
@@ -263,24 +295,14 @@ fn fit_photo(
     (w, h): (usize, usize),
     side: usize,
 ) -> Result<(Vec<Rgb>, Option<Vec<f32>>), (usize, usize)> {
-    if w != h || w % side != 0 {
-        return Err((w, h));
-    }
-    let k = w / side;
+    let k = fit_factor((w, h), side)?;
     if k == 1 {
         return Ok((photo, mask));
     }
-    let average = |layer: &[[f32; 3]]| crate::training_sample::area_downsample(layer, w, k);
-    let linear: Vec<Rgb> = photo.iter().map(|c| c.map(srgb_to_linear)).collect();
-    let photo = average(&linear)
-        .into_iter()
-        .map(|c| c.map(linear_to_srgb))
-        .collect();
-    let mask = mask.map(|mask| {
-        let mask_rgb: Vec<[f32; 3]> = mask.iter().map(|&m| [m; 3]).collect();
-        average(&mask_rgb).into_iter().map(|m| m[0]).collect()
-    });
-    Ok((photo, mask))
+    Ok((
+        average_photo(&photo, w, k),
+        mask.map(|m| average_mask(&m, w, k)),
+    ))
 }
 
 /// A seed for example `index` of a stream seeded `seed`.
@@ -295,17 +317,14 @@ fn fit(
     photo: Vec<Rgb>,
     side: usize,
 ) -> Result<(IntrinsicImage, Vec<Rgb>), (usize, usize)> {
-    let (w, h) = (image.width, image.height);
-    if w != h || w % side != 0 {
-        return Err((w, h));
-    }
-    let k = w / side;
+    let w = image.width;
+    let k = fit_factor((w, image.height), side)?;
     if k == 1 {
         return Ok((image, photo));
     }
     let average = |layer: &[[f32; 3]]| crate::training_sample::area_downsample(layer, w, k);
-    let (photo, mask) = fit_photo(photo, Some(image.mask), (w, h), side)?;
-    let mask = mask.expect("given");
+    let photo = average_photo(&photo, w, k);
+    let mask = average_mask(&image.mask, w, k);
     let normals = average(&image.normals)
         .into_iter()
         .zip(&mask)

@@ -62,14 +62,6 @@ pub enum Intrinsics<'a> {
         /// given: one derived from the normals' length is not trusted with the photo.
         over_background: bool,
     },
-    /// A photos-only folder dataset's image: the photo alone, composited over the background
-    /// with its mask if it has one. No relighting: the example has the photo layer only.
-    PhotoOnly {
-        side: usize,
-        photo: &'a [Rgb],
-        mask: Option<&'a [f32]>,
-        pose: Pose,
-    },
 }
 
 /// All layers of one example at `side x side` (output) and `side / factor` (volume)
@@ -119,12 +111,6 @@ pub fn make_sample(
     let (image, camera) = match &intrinsics {
         Intrinsics::Synthetic { render, .. } => (&render.image, render.camera.clone()),
         Intrinsics::Photo { image, .. } => (*image, volux_model::ray_sampling::CameraConfig::new()),
-        &Intrinsics::PhotoOnly {
-            side,
-            photo,
-            mask,
-            pose,
-        } => return photo_only(side, photo, mask, pose, draw, background, factor),
     };
     let (side, height) = (image.width, image.height);
     if side != height {
@@ -141,7 +127,6 @@ pub fn make_sample(
             let shading = synthetic_head::shade(head, render, lights, draw.yaw, background)?;
             (shading.layers, shading.photo)
         }
-        Intrinsics::PhotoOnly { .. } => unreachable!("returned above"),
         Intrinsics::Photo {
             image,
             photo,
@@ -195,9 +180,9 @@ pub fn make_sample(
     })
 }
 
-/// The example of a photos-only dataset: the photo layer alone (over the background where
-/// a mask is given), every other layer empty.
-fn photo_only(
+/// The example of a photos-only dataset from its `side x side` photo: the photo layer alone
+/// (over the background where a mask is given), every other layer empty. No relighting runs.
+pub fn make_photo_sample(
     side: usize,
     photo: &[Rgb],
     mask: Option<&[f32]>,
