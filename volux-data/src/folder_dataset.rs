@@ -667,7 +667,7 @@ use error::name_list;
 pub use poses::parse_poses;
 use poses::read_poses;
 use volux_model::pose::Pose;
-pub use write::write_dataset;
+pub use write::{sample_paths, write_dataset, write_sample};
 
 #[cfg(test)]
 mod tests;

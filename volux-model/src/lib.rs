@@ -46,5 +46,6 @@ pub mod sampling_report;
 pub mod shading;
 #[cfg(test)]
 mod test_support;
+pub mod unet;
 pub mod upsampler;
 pub mod volume_rendering;

@@ -9,14 +9,12 @@
 //! map is [`tonemap_srgb`], the same curve as `volux_envmap::io::tonemap` at exposure 1, which
 //! the data pipeline uses for its pseudo-ground-truth relit images.
 
-use std::f64::consts::SQRT_2;
-
 use burn::config::Config;
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 
 use crate::equalized::{EqualizedConv2d, EqualizedConv2dConfig};
-use crate::upsampler::bilinear_upsample;
+use crate::unet::{self, ConvPair};
 
 /// `[b, 3, h, w]` linear HDR -> sRGB in [0, 1]: luminance Reinhard `x / (1 + Y)`, then the sRGB
 /// transfer curve. Differentiable everywhere (the curve's power runs on values clamped into
@@ -40,15 +38,6 @@ pub fn tonemap_srgb(x: Tensor<4>) -> Tensor<4> {
     out
 }
 
-/// 2x2 box downsampling (the mean of each 2x2 block), as plain reshapes.
-fn box_downsample2(x: Tensor<4>) -> Tensor<4> {
-    let [b, c, h, w] = x.dims();
-    x.reshape([b, c, h / 2, 2, w / 2, 2])
-        .mean_dim(5)
-        .mean_dim(3)
-        .reshape([b, c, h / 2, w / 2])
-}
-
 /// Configuration of a [`RelightingNet`].
 #[derive(Config, Debug)]
 pub struct RelightingConfig {
@@ -59,28 +48,7 @@ pub struct RelightingConfig {
     pub channels: Vec<usize>,
 }
 
-/// Two 3x3 convolutions with leaky ReLU.
-#[derive(Module, Debug)]
-pub struct ConvPair {
-    pub a: EqualizedConv2d,
-    pub b: EqualizedConv2d,
-}
-
-impl ConvPair {
-    fn new(c_in: usize, c_out: usize, device: &Device) -> Self {
-        Self {
-            a: EqualizedConv2dConfig::new(c_in, c_out, 3).init(device),
-            b: EqualizedConv2dConfig::new(c_out, c_out, 3).init(device),
-        }
-    }
-
-    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        self.b
-            .forward_lrelu(self.a.forward_lrelu(x, SQRT_2), SQRT_2)
-    }
-}
-
-/// The U-Net.
+/// The U-Net (its levels: [`crate::unet`]).
 #[derive(Module, Debug)]
 pub struct RelightingNet {
     /// Encoder levels, finest first.
@@ -99,19 +67,8 @@ impl RelightingConfig {
 
     /// A network with freshly initialised parameters on `device`.
     pub fn init(&self, device: &Device) -> RelightingNet {
-        assert!(!self.channels.is_empty(), "at least one U-Net level");
-        let mut down = Vec::new();
-        let mut c_in = self.in_channels();
-        for &c in &self.channels {
-            down.push(ConvPair::new(c_in, c, device));
-            c_in = c;
-        }
-        let mut up = Vec::new();
-        for level in (0..self.channels.len() - 1).rev() {
-            let c = self.channels[level];
-            up.push(ConvPair::new(c_in + c, c, device));
-            c_in = c;
-        }
+        let (down, up) = unet::levels(self.in_channels(), &self.channels, device);
+        let c_in = self.channels[0];
         let mut out = EqualizedConv2dConfig::new(c_in, 3, 1).init(device);
         out.weight = Param::from_tensor(Tensor::zeros([3, c_in, 1, 1], device));
         RelightingNet { down, up, out }
@@ -141,20 +98,7 @@ impl RelightingNet {
             ],
             1,
         );
-        let mut skips = Vec::with_capacity(self.down.len());
-        let mut x = x;
-        for (i, level) in self.down.iter().enumerate() {
-            if i > 0 {
-                x = box_downsample2(x);
-            }
-            x = level.forward(x);
-            skips.push(x.clone());
-        }
-        skips.pop();
-        for level in &self.up {
-            let skip = skips.pop().expect("one skip per decoder level");
-            x = level.forward(Tensor::cat(vec![bilinear_upsample(x, 2), skip], 1));
-        }
+        let x = unet::encode_decode(&self.down, &self.up, x);
         phong + self.out.forward(x)
     }
 

@@ -51,28 +51,11 @@ pub fn write_dataset(root: &Path, samples: &[FolderSample]) -> Result<(), Folder
         let dir = root.join(layer.folder);
         fs::create_dir_all(&dir).map_err(io_err(&dir))?;
     }
-    let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
     let mut csv = String::from("name,yaw,pitch\n");
     for s in samples {
-        let (w, h, stem) = (s.image.width, s.image.height, &s.stem);
-        let photo: Vec<[u8; 3]> = s.photo.iter().map(|c| c.map(to_u8)).collect();
-        io::save_png(&root.join(format!("photos/{stem}.png")), w, h, &photo)?;
-        io::save_exr(
-            &root.join(format!("albedo/{stem}.exr")),
-            w,
-            h,
-            &s.image.albedo,
-        )?;
-        io::save_exr(
-            &root.join(format!("normals/{stem}.exr")),
-            w,
-            h,
-            &s.image.normals,
-        )?;
-        let mask: Vec<[u8; 3]> = s.image.mask.iter().map(|&m| [to_u8(m); 3]).collect();
-        io::save_png(&root.join(format!("masks/{stem}.png")), w, h, &mask)?;
+        write_files(root, s)?;
         let Pose { yaw, pitch } = s.image.pose;
-        let _ = writeln!(csv, "{stem},{yaw},{pitch}");
+        let _ = writeln!(csv, "{},{yaw},{pitch}", s.stem);
     }
     let poses = root.join(POSES_FILE);
     durable::write_atomically(&poses, |tmp| {
@@ -81,6 +64,46 @@ pub fn write_dataset(root: &Path, samples: &[FolderSample]) -> Result<(), Folder
             source,
         })
     })?;
+    Ok(())
+}
+
+/// Writes one sample's files into the layout under `root` (its folders made if missing):
+/// albedo, normals and mask first, the photo last, each atomically, so that a sample whose
+/// photo exists is complete. Nothing is written for a sample [`write_dataset`] would refuse.
+/// With the pose left out of `poses.csv` (not written here), a folder of such samples is a
+/// dataset of frontal photos or, in training, photos with poses from a prior.
+pub fn write_sample(root: &Path, sample: &FolderSample) -> Result<(), FolderError> {
+    check_sample(sample)?;
+    for layer in [PHOTOS, ALBEDO, NORMALS, MASKS] {
+        let dir = root.join(layer.folder);
+        fs::create_dir_all(&dir).map_err(|source| FolderError::Io {
+            path: dir.clone(),
+            source,
+        })?;
+    }
+    write_files(root, sample)
+}
+
+/// The paths of sample `stem`'s photo, albedo, normals and mask as [`write_sample`] writes them.
+pub fn sample_paths(root: &Path, stem: &str) -> [std::path::PathBuf; 4] {
+    [
+        root.join(PHOTOS.folder).join(format!("{stem}.png")),
+        root.join(ALBEDO.folder).join(format!("{stem}.exr")),
+        root.join(NORMALS.folder).join(format!("{stem}.exr")),
+        root.join(MASKS.folder).join(format!("{stem}.png")),
+    ]
+}
+
+fn write_files(root: &Path, s: &FolderSample) -> Result<(), FolderError> {
+    let to_u8 = |v: f32| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8;
+    let (w, h) = (s.image.width, s.image.height);
+    let [photo_path, albedo_path, normals_path, mask_path] = sample_paths(root, &s.stem);
+    io::save_exr(&albedo_path, w, h, &s.image.albedo)?;
+    io::save_exr(&normals_path, w, h, &s.image.normals)?;
+    let mask: Vec<[u8; 3]> = s.image.mask.iter().map(|&m| [to_u8(m); 3]).collect();
+    io::save_png(&mask_path, w, h, &mask)?;
+    let photo: Vec<[u8; 3]> = s.photo.iter().map(|c| c.map(to_u8)).collect();
+    io::save_png(&photo_path, w, h, &photo)?;
     Ok(())
 }
 
