@@ -151,9 +151,9 @@ mod tests {
     #[test]
     fn box_downsampling_averages_blocks() {
         let device = Device::flex();
-        let x = Tensor::<1>::arange(0..16, &device)
-            .float()
-            .reshape([1, 1, 4, 4]);
+        let values: Vec<f32> = (0..16).map(|v| v as f32).collect();
+        let x =
+            Tensor::<4>::from_data(burn::tensor::TensorData::new(values, [1, 1, 4, 4]), &device);
         let y = to_f32_vec(box_downsample2(x));
         assert_eq!(y, vec![2.5, 4.5, 10.5, 12.5]);
     }
