@@ -783,3 +783,87 @@ fn the_shipped_model_samples_by_name_from_any_folder() {
         "{t}"
     );
 }
+
+/// Photos alone, end to end: held-out synthetic heads (never in the estimator's training),
+/// photographed with backgrounds, exposure, noise and JPEG, go through
+/// `volux data pseudo-gt` (the shipped estimator), `volux data build` and `volux train`.
+#[test]
+fn photos_alone_become_a_dataset_that_builds_and_trains() {
+    use volux_pseudo_gt::augmentation::AugmentationRanges;
+    use volux_pseudo_gt::synthetic_pairs::collection_lights;
+    use volux_pseudo_gt::training::held_out_inputs;
+
+    let dir = tempfile::tempdir().unwrap();
+    let lights = collection_lights().unwrap();
+    let side = 64;
+    let heads = held_out_inputs(&lights, 4, 11, side, 1, &AugmentationRanges::default()).unwrap();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir(&photos).unwrap();
+    for (i, h) in heads.iter().enumerate() {
+        let bytes: Vec<[u8; 3]> = h
+            .photo
+            .iter()
+            .map(|t| t.map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8))
+            .collect();
+        volux_envmap::io::save_png(&photos.join(format!("face{i}.png")), side, side, &bytes)
+            .unwrap();
+    }
+    let faces = dir.path().join("faces");
+    let o = volux(&[
+        "data",
+        "pseudo-gt",
+        "--photos",
+        photos.to_str().unwrap(),
+        "--out",
+        faces.to_str().unwrap(),
+        "--resolution",
+        "64",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("4 photos at 64x64 (4 made, 0 kept"), "{t}");
+    assert!(faces.join("contact_sheet.png").is_file());
+
+    // The estimated normals are close to the exact ones where the head is.
+    let dataset = volux_data::folder_dataset::FolderDataset::open(&faces).unwrap();
+    let (mut angle, mut weight) = (0.0f64, 0.0f64);
+    for (i, h) in heads.iter().enumerate() {
+        let sample = dataset.load(i).unwrap();
+        for ((n, e), &m) in h.normals.iter().zip(&sample.image.normals).zip(&h.mask) {
+            let cos: f32 = (0..3).map(|c| n[c] * e[c]).sum();
+            angle += f64::from(m) * f64::from(cos.clamp(-1.0, 1.0).acos()).to_degrees();
+            weight += f64::from(m);
+        }
+    }
+    let mean = angle / weight;
+    assert!(mean < 30.0, "mean normal angle {mean:.1} degrees");
+
+    let config = dir.path().join("photos.toml");
+    let tiny = TINY_TRAINING.replace(
+        "[data.lighting]",
+        "[data.source]\nkind = \"folder\"\npath = \"faces\"\n\n\
+         [data.cache]\ndir = \"examples\"\nexamples = 4\nshard_size = 2\n\n[data.lighting]",
+    );
+    std::fs::write(&config, tiny).unwrap();
+    let config = config.to_str().unwrap();
+    let built = volux(&["data", "build", "--config", config]);
+    assert!(built.status.success(), "{}", text(&built));
+    assert!(
+        text(&built).contains("4 examples in 2 shards"),
+        "{}",
+        text(&built)
+    );
+    let run = dir.path().join("run");
+    let trained = volux(&[
+        "train",
+        "--config",
+        config,
+        "--out",
+        run.to_str().unwrap(),
+        "--steps",
+        "4",
+    ]);
+    let t = text(&trained);
+    assert!(trained.status.success(), "{t}");
+    assert!(t.contains("step limit reached: step 4"), "{t}");
+}

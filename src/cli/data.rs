@@ -24,6 +24,10 @@ pub enum DataCommand {
     /// Render synthetic heads into a contact sheet of every layer (photo, relit, albedo,
     /// normals, mask, depth, diffuse, specular) and report images per second.
     Heads(HeadsArgs),
+    /// Make a folder dataset from photos alone: estimate each photo's albedo, camera-space
+    /// normals and mask with the intrinsic estimator (shipped, or trained with --train on the
+    /// synthetic heads); --evaluate measures the estimator on held-out identities.
+    PseudoGt(super::pseudo_gt::PseudoGtArgs),
 }
 
 #[derive(Debug, Args)]
@@ -62,6 +66,7 @@ pub fn run(cmd: DataCommand) -> anyhow::Result<()> {
     match cmd {
         DataCommand::Build(args) => build(args),
         DataCommand::Heads(args) => heads(args),
+        DataCommand::PseudoGt(args) => super::pseudo_gt::run(args),
     }
 }
 

@@ -8,6 +8,7 @@ mod eval;
 mod export;
 mod model;
 mod plot;
+mod pseudo_gt;
 mod report;
 mod sample;
 mod train;
