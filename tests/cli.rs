@@ -867,3 +867,87 @@ fn photos_alone_become_a_dataset_that_builds_and_trains() {
     assert!(trained.status.success(), "{t}");
     assert!(t.contains("step limit reached: step 4"), "{t}");
 }
+
+#[test]
+fn pseudo_gt_trains_and_evaluates_an_estimator() {
+    let dir = tempfile::tempdir().unwrap();
+    let est = dir.path().join("estimator");
+    let o = volux(&[
+        "data",
+        "pseudo-gt",
+        "--train",
+        "--out",
+        est.to_str().unwrap(),
+        "--steps",
+        "2",
+        "--pool",
+        "4",
+        "--batch",
+        "2",
+        "--held-out",
+        "2",
+        "--eval-every",
+        "1",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("step      2") && t.contains("(2 steps"), "{t}");
+    assert!(est.join("estimator.bpk").is_file());
+    assert_eq!(
+        std::fs::read_to_string(est.join("log.jsonl"))
+            .unwrap()
+            .lines()
+            .count(),
+        2
+    );
+    let table = dir.path().join("accuracy.md");
+    let o = volux(&[
+        "data",
+        "pseudo-gt",
+        "--evaluate",
+        "--estimator",
+        est.to_str().unwrap(),
+        "--out",
+        table.to_str().unwrap(),
+        "--sides",
+        "16,32",
+        "--held-out",
+        "2",
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let written = std::fs::read_to_string(&table).unwrap();
+    assert!(
+        written.contains("| 16 | augmented |") && written.contains("| 32 | clean |"),
+        "{written}"
+    );
+    assert!(dir.path().join("accuracy.png").is_file());
+    let bad = volux(&[
+        "data",
+        "pseudo-gt",
+        "--evaluate",
+        "--out",
+        table.to_str().unwrap(),
+        "--sides",
+        "4",
+    ]);
+    assert!(
+        !bad.status.success() && text(&bad).contains("--sides"),
+        "{}",
+        text(&bad)
+    );
+    let bad = volux(&[
+        "data",
+        "pseudo-gt",
+        "--train",
+        "--out",
+        est.to_str().unwrap(),
+        "--batch",
+        "0",
+    ]);
+    assert!(
+        !bad.status.success() && text(&bad).contains("batch = 0"),
+        "{}",
+        text(&bad)
+    );
+}

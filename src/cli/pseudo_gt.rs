@@ -15,7 +15,7 @@ use volux_pseudo_gt::augmentation::AugmentationRanges;
 use volux_pseudo_gt::estimator::Estimator;
 use volux_pseudo_gt::training::{self, TrainOptions};
 use volux_pseudo_gt::weights::{self, EstimatorFile};
-use volux_pseudo_gt::{photo_folder, synthetic_pairs};
+use volux_pseudo_gt::{photo_folder, sheets, synthetic_pairs};
 
 #[derive(Debug, Args)]
 pub struct PseudoGtArgs {
@@ -23,7 +23,8 @@ pub struct PseudoGtArgs {
     #[arg(long, required_unless_present_any = ["train", "evaluate"])]
     pub photos: Option<PathBuf>,
     /// Where to write: the dataset (with --photos), the estimator folder (with --train) or
-    /// the accuracy table (with --evaluate).
+    /// the accuracy table (with --evaluate; a contact sheet of estimates and truth is written
+    /// beside it, as .png).
     #[arg(long)]
     pub out: PathBuf,
     /// Side of the dataset's images in pixels (photos are centre-cropped to a square and
@@ -48,7 +49,8 @@ pub struct PseudoGtArgs {
     /// With --train: stop after this many steps.
     #[arg(long)]
     pub steps: Option<u64>,
-    /// With --train or --evaluate: seed of the pairs, batches and augmentations.
+    /// With --train or --evaluate: seed of the pairs, batches, augmentations and (--train) the
+    /// initial weights.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// With --train: training pairs rendered (identities 0..pool).
@@ -175,6 +177,12 @@ fn evaluate(
          | side | photos | normal angle (deg) | albedo error | mask IoU | seconds per photo |\n|---|---|---|---|---|---|\n",
         file.training.steps, file.estimator.resolution, args.held_out, args.seed
     );
+    let sheet_side = if args.sides.contains(&128) {
+        128
+    } else {
+        args.sides[0]
+    };
+    let sheet = args.out.with_extension("png");
     for &side in &args.sides {
         for (name, ranges) in [
             ("augmented", AugmentationRanges::default()),
@@ -183,18 +191,28 @@ fn evaluate(
             let inputs =
                 training::held_out_inputs(&lights, args.held_out, args.seed, side, 2, &ranges)?;
             let start = Instant::now();
-            let a = training::measure(estimator, &inputs, file.estimator.resolution);
+            let estimates =
+                training::estimate_inputs(estimator, &inputs, file.estimator.resolution);
             let per = start.elapsed().as_secs_f64() / inputs.len() as f64;
+            let a = training::score(&estimates, &inputs);
             let _ = writeln!(
                 table,
                 "| {side} | {name} | {:.2} | {:.4} | {:.4} | {per:.3} |",
                 a.normal_degrees, a.albedo_error, a.mask_iou
             );
+            if side == sheet_side && name == "augmented" {
+                let rows: Vec<_> = inputs.iter().zip(&estimates).take(8).collect();
+                sheets::save_comparison(&sheet, &rows)?;
+            }
         }
     }
     print!("{table}");
     std::fs::write(&args.out, &table).with_context(|| format!("writing {}", args.out.display()))?;
-    println!("wrote {}", args.out.display());
+    println!(
+        "wrote {} and {} (the first 8 augmented held-out photos at {sheet_side}: photo, then albedo, normals and mask, each estimated and true)",
+        args.out.display(),
+        sheet.display()
+    );
     Ok(())
 }
 

@@ -8,6 +8,7 @@ pub mod estimator;
 pub mod objective;
 pub mod photo_folder;
 pub mod resample;
+pub mod sheets;
 pub mod synthetic_pairs;
 pub mod training;
 pub mod weights;

@@ -19,7 +19,6 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
-use volux_data::contact_sheet::{self, ContactSheet};
 use volux_data::folder_dataset::{FolderSample, sample_paths, write_sample};
 use volux_data::relighting::IntrinsicImage;
 use volux_envmap::io::{self, linear_to_srgb, srgb_to_linear};
@@ -29,6 +28,7 @@ use volux_model::pose::Pose;
 use crate::error::PseudoGtError;
 use crate::estimator::{Estimate, Estimator};
 use crate::resample;
+use crate::sheets;
 use crate::synthetic_pairs::{HELD_OUT_FIRST, render_pair};
 use crate::weights::EstimatorFile;
 
@@ -318,7 +318,9 @@ pub fn make_dataset(
         }
         progress(((k + 1) * BATCH).min(list.len()), list.len());
     }
-    write_contact_sheet(&out.join("contact_sheet.png"), side, &sheet_rows)?;
+    let rows: Vec<(&[Rgb], &Estimate)> =
+        sheet_rows.iter().map(|(p, e)| (p.as_slice(), e)).collect();
+    sheets::save_estimates(&out.join("contact_sheet.png"), side, &rows)?;
     let mut csv = String::from("name,coverage,centre_x,centre_y,framed_like_the_camera\n");
     let mut misframed = Vec::new();
     for (stem, f) in &framings {
@@ -346,25 +348,6 @@ pub fn make_dataset(
         misframed,
         range,
     })
-}
-
-fn write_contact_sheet(
-    path: &Path,
-    side: usize,
-    rows: &[(Vec<Rgb>, Estimate)],
-) -> Result<(), PseudoGtError> {
-    if rows.is_empty() {
-        return Ok(());
-    }
-    let mut sheet = ContactSheet::new(side, side, 4, rows.len());
-    for (row, (photo, e)) in rows.iter().enumerate() {
-        sheet.put(0, row, photo);
-        sheet.put(1, row, &contact_sheet::albedo_colours(&e.albedo));
-        sheet.put(2, row, &contact_sheet::normal_colours(&e.normals, &e.mask));
-        sheet.put(3, row, &contact_sheet::grey(&e.mask, 0.0, 1.0));
-    }
-    io::save_png(path, sheet.width(), sheet.height(), &sheet.to_u8())?;
-    Ok(())
 }
 
 #[cfg(test)]
