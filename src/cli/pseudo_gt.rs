@@ -115,6 +115,14 @@ pub fn run(args: PseudoGtArgs) -> anyhow::Result<()> {
         made.kept,
         start.elapsed().as_secs_f64()
     );
+    if !made.blank.is_empty() {
+        println!(
+            "warning: {} of {} photos are blank (no contrast: no face to estimate) and were left out: {}",
+            made.blank.len(),
+            made.photos,
+            made.blank.join(", ")
+        );
+    }
     if !made.misframed.is_empty() {
         let names: Vec<String> = made
             .misframed
@@ -163,6 +171,10 @@ fn evaluate(
     }
     if !(1..=10_000).contains(&args.held_out) {
         bail!("--held-out {} must be 1 to 10000", args.held_out);
+    }
+    if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("creating {}", parent.display()))?;
     }
     let lights = collection_lights()?;
     let clean = AugmentationRanges {

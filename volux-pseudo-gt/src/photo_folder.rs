@@ -6,11 +6,12 @@
 //! - Every file is written atomically and a sample's photo last, so a sample whose four files
 //!   exist is complete; a rerun into the same folder keeps those and makes the rest (an
 //!   interrupted run resumes). `pseudo_gt.toml` records the side and the estimator; a rerun
-//!   with a different side is refused.
+//!   with a different side or estimator is refused.
 //! - Framing: the model's camera sees a head that covers a known share of the frame, centred.
 //!   Each photo's estimated mask is compared with the range the synthetic heads cover at the
 //!   dataset camera ([`framing_range`]); photos outside it are reported by name, and every
 //!   photo's figures are in `framing.csv`.
+//! - A blank photo (no contrast, [`is_blank`]) holds no face: it is left out and named.
 //! - `contact_sheet.png`: the first photos with their albedo, normals and mask.
 
 use std::collections::BTreeMap;
@@ -38,6 +39,9 @@ pub const RECORD: &str = "pseudo_gt.toml";
 const SHEET_ROWS: usize = 8;
 /// Photos estimated together.
 const BATCH: usize = 8;
+/// Below this standard deviation (sRGB, of each pixel's mean channel) a photo is blank: two
+/// 8-bit levels.
+pub const BLANK_SD: f64 = 2.0 / 255.0;
 /// The largest side of a dataset made here.
 pub const MAX_SIDE: usize = 1024;
 
@@ -195,6 +199,8 @@ pub struct MadeDataset {
     pub kept: usize,
     /// Photos whose head is framed unlike the model's camera, with their framing.
     pub misframed: Vec<(String, Framing)>,
+    /// Photos with no contrast ([`is_blank`]), not written.
+    pub blank: Vec<String>,
     pub range: FramingRange,
 }
 
@@ -240,6 +246,19 @@ pub fn make_dataset(
                 earlier.resolution
             )));
         }
+        if earlier != record {
+            return Err(PseudoGtError::Invalid(format!(
+                "{} was made with the estimator {} ({} steps): resume it with that estimator, or give another --out",
+                out.display(),
+                earlier.estimator,
+                earlier.estimator_steps
+            )));
+        }
+    } else if out.exists() && !out.is_dir() {
+        return Err(PseudoGtError::Invalid(format!(
+            "{} is a file: give a folder for the dataset",
+            out.display()
+        )));
     } else if out.is_dir()
         && fs::read_dir(out)
             .map_err(|source| PseudoGtError::Io {
@@ -269,6 +288,7 @@ pub fn make_dataset(
     let mut framings: Vec<(String, Framing)> = Vec::with_capacity(list.len());
     let mut sheet_rows: Vec<(Vec<Rgb>, Estimate)> = Vec::new();
     let (mut made, mut kept) = (0, 0);
+    let mut blank = Vec::new();
     for (k, chunk) in list.chunks(BATCH).enumerate() {
         let mut todo = Vec::new();
         for (stem, path) in chunk {
@@ -280,7 +300,12 @@ pub fn make_dataset(
                 framings.push((stem.clone(), framing(&mask, side)));
                 continue;
             }
-            todo.push((stem.clone(), square_photo(path, side)?, done));
+            let photo = square_photo(path, side)?;
+            if !done && is_blank(&photo) {
+                blank.push(stem.clone());
+                continue;
+            }
+            todo.push((stem.clone(), photo, done));
         }
         let refs: Vec<&[Rgb]> = todo.iter().map(|(_, p, _)| p.as_slice()).collect();
         let estimates = if refs.is_empty() {
@@ -334,6 +359,20 @@ pub fn make_dataset(
             misframed.push((stem.clone(), *f));
         }
     }
+    if made + kept == 0 {
+        return Err(PseudoGtError::Invalid(format!(
+            "none of the {} photos in {} holds a face to estimate (all are blank: {}{})",
+            list.len(),
+            photos.display(),
+            blank
+                .iter()
+                .take(20)
+                .cloned()
+                .collect::<Vec<_>>()
+                .join(", "),
+            if blank.len() > 20 { ", ..." } else { "" }
+        )));
+    }
     let csv_path = out.join("framing.csv");
     durable::write_atomically(&csv_path, |tmp| {
         fs::write(tmp, &csv).map_err(|source| PseudoGtError::Io {
@@ -346,8 +385,19 @@ pub fn make_dataset(
         made,
         kept,
         misframed,
+        blank,
         range,
     })
+}
+
+/// Whether a photo has (next to) no contrast: the standard deviation of its pixels' mean
+/// channel below [`BLANK_SD`]. There is no face in it to estimate.
+pub fn is_blank(photo: &[Rgb]) -> bool {
+    let n = photo.len().max(1) as f64;
+    let values = photo.iter().map(|t| f64::from(t[0] + t[1] + t[2]) / 3.0);
+    let mean = values.clone().sum::<f64>() / n;
+    let var = values.map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    var.sqrt() < BLANK_SD
 }
 
 #[cfg(test)]
@@ -584,6 +634,62 @@ mod tests {
         assert!(e.contains("not empty"), "{e}");
         let e = make_dataset(
             photos.path(),
+            &foreign.path().join("mine.txt"),
+            24,
+            (&estimator, &file, "tiny"),
+            &lights,
+            &|_, _| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("is a file"), "{e}");
+        // Resuming with another estimator would mix two estimators' layers.
+        let e = make_dataset(
+            photos.path(),
+            &out,
+            24,
+            (&estimator, &file, "another"),
+            &lights,
+            &|_, _| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("estimator tiny"), "{e}");
+        // A blank photo is left out and named; the others are kept.
+        save_srgb(
+            &photos.path().join("blank.png"),
+            32,
+            32,
+            &vec![[0.3; 3]; 32 * 32],
+        );
+        let again = make_dataset(
+            photos.path(),
+            &out,
+            24,
+            (&estimator, &file, "tiny"),
+            &lights,
+            &|_, _| {},
+        )
+        .unwrap();
+        assert_eq!((again.photos, again.made, again.kept), (4, 0, 3));
+        assert_eq!(again.blank, ["blank"]);
+        assert!(!sample_paths(&out, "blank")[0].exists());
+        // A folder of blank photos alone is an error naming them.
+        let blanks = tempfile::tempdir().unwrap();
+        save_srgb(&blanks.path().join("grey.png"), 8, 8, &vec![[0.5; 3]; 64]);
+        let e = make_dataset(
+            blanks.path(),
+            &foreign.path().join("blank_set"),
+            24,
+            (&estimator, &file, "tiny"),
+            &lights,
+            &|_, _| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("blank: grey"), "{e}");
+        let e = make_dataset(
+            photos.path(),
             &out,
             4,
             (&estimator, &file, "tiny"),
@@ -593,6 +699,18 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("resolution 4"), "{e}");
+    }
+
+    #[test]
+    fn blank_photos_have_no_contrast() {
+        assert!(is_blank(&vec![[0.5; 3]; 64]));
+        // One 8-bit level of noise is blank; a head is not.
+        let noisy: Vec<Rgb> = (0..64).map(|i| [0.5 + (i % 2) as f32 / 255.0; 3]).collect();
+        assert!(is_blank(&noisy));
+        let lights = bank();
+        let head = render_pair(&lights, HELD_OUT_FIRST, 0, 32, 1).unwrap();
+        assert!(!is_blank(&head.photo));
+        assert!(is_blank(&[]));
     }
 
     #[test]

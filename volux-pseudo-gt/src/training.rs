@@ -92,6 +92,9 @@ impl TrainOptions {
         if !(self.minutes.is_finite() && self.minutes > 0.0 && self.minutes <= 10_080.0) {
             return bad(format!("minutes = {} must be in (0, 10080]", self.minutes));
         }
+        if self.max_steps == Some(0) {
+            return bad("steps = 0: give at least 1".to_string());
+        }
         if !(1..=4).contains(&self.supersample) || self.eval_every == 0 {
             return bad(format!(
                 "supersample = {} must be 1 to 4 and eval_every = {} at least 1",
@@ -218,6 +221,12 @@ pub fn train(
         path: out.to_path_buf(),
         source,
     };
+    if out.exists() && !out.is_dir() {
+        return Err(PseudoGtError::Invalid(format!(
+            "{} is a file: give a folder for the estimator",
+            out.display()
+        )));
+    }
     std::fs::create_dir_all(out).map_err(io)?;
     let log_path = out.join("log.jsonl");
     let mut log: File = OpenOptions::new()
@@ -422,5 +431,18 @@ mod tests {
             })
             .contains("-1")
         );
+        assert!(
+            bad(TrainOptions {
+                max_steps: Some(0),
+                ..Default::default()
+            })
+            .contains("steps = 0")
+        );
+        let file = tempfile::NamedTempFile::new().unwrap();
+        let lights = crate::synthetic_pairs::tests::bank();
+        let e = train(&TrainOptions::default(), &lights, file.path(), &mut |_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is a file"), "{e}");
     }
 }
