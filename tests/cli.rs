@@ -707,6 +707,25 @@ fn the_shipped_model_samples_by_name_from_any_folder() {
         "{}",
         text(&o)
     );
+    // Sizes are bounded before any work: frames, cameras, and an --out that is a file.
+    for (args, says) in [
+        (&["--rotate-light", "100000"][..], "at most 1024 frames"),
+        (&["--rotate-camera", "1025"][..], "--rotate-camera 1025"),
+        (
+            &["--yaw", "0,1,2,3,4,5,6,7,8", "--pitch", "0,1,2,3,4,5,6,7"][..],
+            "72 cameras",
+        ),
+        (&["--out", "out/layers-sunrise.png"][..], "is a file"),
+    ] {
+        let mut all = vec!["sample", "--checkpoint", "quickstart"];
+        all.extend_from_slice(args);
+        let o = run(&all);
+        assert!(
+            !o.status.success() && text(&o).contains(says),
+            "{args:?}: {}",
+            text(&o)
+        );
+    }
     assert!(dir.path().join("out/layers-sunrise.png").is_file(), "{t}");
     assert!(
         dir.path()
@@ -950,4 +969,43 @@ fn pseudo_gt_trains_and_evaluates_an_estimator() {
         "{}",
         text(&bad)
     );
+}
+
+/// An `--out` that is a file, or a size far beyond the limits, is refused before any work with
+/// a message naming the flag (it used to say only "File exists", after the work, or to run
+/// until memory ran out).
+#[test]
+fn outputs_that_are_files_and_huge_sizes_are_refused_before_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("a_file");
+    std::fs::write(&file, "not a folder").unwrap();
+    let f = file.to_str().unwrap();
+    let hdri = asset("city.exr");
+    for (args, says) in [
+        (
+            vec!["eval", "--checkpoint", "quickstart", "--out", f],
+            "is a file",
+        ),
+        (
+            vec!["data", "heads", "--seeds", "0", "--out", f],
+            "is a file",
+        ),
+        (
+            vec!["envmap", "preconvolve", &hdri, "--out", f],
+            "is a file",
+        ),
+        (
+            vec!["model", "bench", "--batch", "0"],
+            "--batch 0: give 1 to 64",
+        ),
+        (
+            vec!["model", "bench", "--batch", "100000"],
+            "--batch 100000",
+        ),
+    ] {
+        let o = volux(&args);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{args:?}: {t}");
+        assert!(t.contains(says), "{args:?}: {t}");
+    }
 }

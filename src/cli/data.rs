@@ -167,6 +167,7 @@ fn heads(args: HeadsArgs) -> anyhow::Result<()> {
             args.supersample
         );
     }
+    super::output_folder(&args.out)?;
     let (_, map) = super::environment::env_map(args.hdri.as_deref(), "sunrise")?;
     let set = preconvolve(&map, &PreconvolveOptions::default())?;
     let lights: Vec<&LightMap> = set.maps().iter().collect();
@@ -209,8 +210,6 @@ fn heads(args: HeadsArgs) -> anyhow::Result<()> {
             sheet.put(column, row, tile);
         }
     }
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
     let path = args.out.join("heads.png");
     io::save_png(&path, sheet.width(), sheet.height(), &sheet.to_u8())?;
     let n = seeds.len() as f64;

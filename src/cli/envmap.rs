@@ -145,6 +145,7 @@ fn preconvolve(args: PreconvolveArgs) -> anyhow::Result<()> {
     if !args.yaw.is_finite() {
         bail!("--yaw {}: degrees must be a finite number", args.yaw);
     }
+    super::output_folder(&args.out)?;
     let mut map = io::load(&args.file)?;
     if args.yaw != 0.0 {
         map = map.rotated_yaw(args.yaw.to_radians());

@@ -58,6 +58,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     if !(1..=256).contains(&args.batch) {
         bail!("--batch {}: give 1 to 256", args.batch);
     }
+    super::output_folder(&args.out)?;
     if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
         bail!("--tolerance {} must be positive", args.tolerance);
     }
@@ -92,8 +93,6 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         state.images,
         &options,
     )?;
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
     let table = evaluation.report.to_table();
     print!("{table}");
     let txt = args.out.join("eval.txt");

@@ -13,7 +13,20 @@ mod report;
 mod sample;
 mod train;
 
+use std::path::Path;
+
+use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
+
+/// Makes the output folder `--out` (and its parents), refusing a path that is a file with an
+/// error that says so (creating it would only say "File exists"). Commands call it before
+/// their work, so a bad `--out` costs nothing.
+pub fn output_folder(out: &Path) -> anyhow::Result<()> {
+    if out.exists() && !out.is_dir() {
+        bail!("--out {} is a file: give a folder", out.display());
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))
+}
 
 /// Relightable 3D-aware face generation (VoLux-GAN) on Burn.
 #[derive(Debug, Parser)]

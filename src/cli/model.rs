@@ -211,8 +211,15 @@ fn peak_memory_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+/// The largest `volux model bench --batch` (16x the default): a typo such as 100000 would
+/// exhaust memory instead of measuring anything.
+const MAX_BENCH_BATCH: usize = 64;
+
 fn bench(args: BenchArgs) -> anyhow::Result<()> {
     use burn::tensor::{Distribution, Tensor};
+    if !(1..=MAX_BENCH_BATCH).contains(&args.batch) {
+        bail!("--batch {}: give 1 to {MAX_BENCH_BATCH}", args.batch);
+    }
     let device = args.backend.device()?.autodiff();
     let config = args.preset.config();
     let generator = config.init(&device)?;

@@ -131,6 +131,11 @@ impl Animations<'_> {
     }
 }
 
+/// The most frames of a rotation (82 s at the default 12.5 fps).
+const MAX_FRAMES: usize = 1024;
+/// The most cameras (`--yaw` x `--pitch`), and the most environments (`--hdri`), of one call.
+const MAX_VIEWS: usize = 64;
+
 pub fn run(args: SampleArgs) -> anyhow::Result<()> {
     let seeds = parse_seeds(&args.seeds, 64)?;
     for (flag, values) in [("--yaw", &args.yaw), ("--pitch", &args.pitch)] {
@@ -141,6 +146,29 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
     if !(args.fps.is_finite() && (1.0..=120.0).contains(&args.fps)) {
         bail!("--fps {}: give a frame rate from 1 to 120", args.fps);
     }
+    for (flag, frames) in [
+        ("--rotate-light", args.rotate_light),
+        ("--rotate-camera", args.rotate_camera),
+    ] {
+        if frames > MAX_FRAMES {
+            bail!("{flag} {frames}: give at most {MAX_FRAMES} frames (0 for none)");
+        }
+    }
+    let views = args.yaw.len() * args.pitch.len();
+    if views > MAX_VIEWS {
+        bail!(
+            "--yaw and --pitch give {views} cameras ({} x {}): give at most {MAX_VIEWS}",
+            args.yaw.len(),
+            args.pitch.len()
+        );
+    }
+    if args.hdri.len() > MAX_VIEWS {
+        bail!(
+            "--hdri names {} maps: give at most {MAX_VIEWS}",
+            args.hdri.len()
+        );
+    }
+    super::output_folder(&args.out)?;
     let animations = Animations {
         formats: &args.video,
         fps: args.fps,
@@ -175,8 +203,6 @@ pub fn run(args: SampleArgs) -> anyhow::Result<()> {
         trained.state.images as f64 / 1000.0
     );
     let envs = environments(&args.hdri, &["sunrise"])?;
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
     let bg = config.data.albedo_background();
     let z_dim = config.generator().mapping.z_dim;
     let z = sampling::latents(&seeds, z_dim, device);
