@@ -4,7 +4,7 @@
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use volux_eval::progress::{ProgressEval, ProgressOptions};
@@ -119,6 +119,12 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
             args.backend
         ))
     });
+    if out.is_dir() {
+        bail!(
+            "--out {} is a folder: give a file for the table",
+            out.display()
+        );
+    }
     let report = bench::run(config, &options)
         .with_context(|| format!("benchmarking {}", args.config.display()))?;
     let table = report.markdown();
@@ -138,6 +144,12 @@ fn run_training(args: TrainArgs) -> anyhow::Result<()> {
         .out
         .clone()
         .unwrap_or_else(|| PathBuf::from("runs").join(config_name(&config_path)));
+    if out.exists() && !out.is_dir() {
+        bail!(
+            "--out {} is a file: give a folder for the run",
+            out.display()
+        );
+    }
     let g = config.generator();
     tracing::info!(
         "{}: {} model ({}x{} volume, {}x{} output), batch {}, {} + {} kimg, backend {}",

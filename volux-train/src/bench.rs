@@ -38,7 +38,17 @@ pub enum BenchError {
     Stage { config: PathBuf, why: String },
     #[error("at least one measured step is needed")]
     NoSteps,
+    #[error("{steps} measured steps: give at most {MAX_BENCH_STEPS}")]
+    TooManySteps { steps: usize },
+    #[error("a matmul side of {side}: give {} to {}", GEMM_SIDES.start(), GEMM_SIDES.end())]
+    GemmSide { side: usize },
 }
+
+/// The most measured steps of one benchmark (a median needs a few, not thousands).
+pub const MAX_BENCH_STEPS: usize = 1000;
+/// The sides of the peak-measuring matmul: below 16 it measures call overhead; at 8192 its
+/// operands take 768 MiB and each of its repeats about 1.1 TFLOP.
+pub const GEMM_SIDES: std::ops::RangeInclusive<usize> = 16..=8192;
 
 /// What to measure.
 #[derive(Clone, Debug)]
@@ -303,6 +313,16 @@ fn scratch_dir() -> PathBuf {
 pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, BenchError> {
     if options.steps == 0 {
         return Err(BenchError::NoSteps);
+    }
+    if options.steps > MAX_BENCH_STEPS {
+        return Err(BenchError::TooManySteps {
+            steps: options.steps,
+        });
+    }
+    if !GEMM_SIDES.contains(&options.gemm_side) {
+        return Err(BenchError::GemmSide {
+            side: options.gemm_side,
+        });
     }
     let schedule = config.schedule;
     let stage = options.stage;
