@@ -919,7 +919,8 @@ fn pseudo_gt_trains_and_evaluates_an_estimator() {
             .count(),
         2
     );
-    let table = dir.path().join("accuracy.md");
+    // Into a folder that does not exist yet: it is made.
+    let table = dir.path().join("tables/accuracy.md");
     let o = volux(&[
         "data",
         "pseudo-gt",
@@ -940,7 +941,7 @@ fn pseudo_gt_trains_and_evaluates_an_estimator() {
         written.contains("| 16 | augmented |") && written.contains("| 32 | clean |"),
         "{written}"
     );
-    assert!(dir.path().join("accuracy.png").is_file());
+    assert!(dir.path().join("tables/accuracy.png").is_file());
     let bad = volux(&[
         "data",
         "pseudo-gt",

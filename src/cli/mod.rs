@@ -28,6 +28,25 @@ pub fn output_folder(out: &Path) -> anyhow::Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))
 }
 
+/// Checks an output file `--out` before the work: refuses a folder, and makes the folder it
+/// goes in (with its parents), so a table or page is not lost at the end for want of a folder.
+pub fn output_file(out: &Path) -> anyhow::Result<()> {
+    if out.is_dir() {
+        bail!("--out {} is a folder: give a file", out.display());
+    }
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        if dir.exists() && !dir.is_dir() {
+            bail!(
+                "--out {}: {} is a file, not a folder",
+                out.display(),
+                dir.display()
+            );
+        }
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    Ok(())
+}
+
 /// Relightable 3D-aware face generation (VoLux-GAN) on Burn.
 #[derive(Debug, Parser)]
 #[command(name = "volux", version, about, propagate_version = true)]

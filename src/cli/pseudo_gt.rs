@@ -172,10 +172,7 @@ fn evaluate(
     if !(1..=10_000).contains(&args.held_out) {
         bail!("--held-out {} must be 1 to 10000", args.held_out);
     }
-    if let Some(parent) = args.out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent)
-            .with_context(|| format!("creating {}", parent.display()))?;
-    }
+    super::output_file(&args.out)?;
     let lights = collection_lights()?;
     let clean = AugmentationRanges {
         exposure_stops: 0.0,

@@ -17,6 +17,7 @@ pub struct ReportArgs {
 
 pub fn run(args: ReportArgs) -> anyhow::Result<()> {
     let out = args.out.unwrap_or_else(|| args.run.join("report.html"));
+    super::output_file(&out)?;
     let name = args
         .run
         .canonicalize()

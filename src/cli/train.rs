@@ -128,9 +128,6 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
     let report = bench::run(config, &options)
         .with_context(|| format!("benchmarking {}", args.config.display()))?;
     let table = report.markdown();
-    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    }
     std::fs::write(&out, &table).with_context(|| format!("writing {}", out.display()))?;
     println!("{table}");
     println!("table written to {}", out.display());
