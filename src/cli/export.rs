@@ -51,6 +51,7 @@ pub fn run(cmd: ExportCommand) -> anyhow::Result<()> {
 
 fn mesh(args: MeshArgs) -> anyhow::Result<()> {
     let started = Instant::now();
+    super::output_file(&args.out)?;
     let model = load_for_sampling(&args.checkpoint, args.backend)?;
     println!(
         "checkpoint {} ({} model, {:.2} kimg)",
