@@ -119,12 +119,7 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
             args.backend
         ))
     });
-    if out.is_dir() {
-        bail!(
-            "--out {} is a folder: give a file for the table",
-            out.display()
-        );
-    }
+    super::output_file(&out)?;
     let report = bench::run(config, &options)
         .with_context(|| format!("benchmarking {}", args.config.display()))?;
     let table = report.markdown();
