@@ -185,6 +185,19 @@ fn envmap_bench_prints_error_and_time_tables() {
     let md = std::fs::read_to_string(report).unwrap();
     assert!(md.contains("| small | 32 | 1e-3 | 0.5 |"), "{md}");
     assert!(md.contains("rel RMS look-up"), "{md}");
+    // Zero timing runs said "best of 0 runs" and timed one; counts are bounded.
+    for (flag, value) in [
+        ("--repeats", "0"),
+        ("--texels", "0"),
+        ("--directions", "100000000"),
+    ] {
+        let o = volux(&["envmap", "bench", small.to_str().unwrap(), flag, value]);
+        let t = text(&o);
+        assert!(
+            !o.status.success() && t.contains(&format!("{flag} {value}: give 1 to")),
+            "{t}"
+        );
+    }
 }
 
 #[test]

@@ -209,9 +209,29 @@ pub(crate) fn progress_bar(show: bool, steps: usize) -> ProgressBar {
     bar
 }
 
+/// The most random directions or texel centres per light map in `volux envmap bench` (each
+/// costs an f64 reference integral).
+const MAX_POINTS: usize = 1 << 20;
+/// The most timing runs per setting.
+const MAX_REPEATS: usize = 100;
+
 fn bench(args: BenchArgs) -> anyhow::Result<()> {
-    if args.directions == 0 {
-        bail!("--directions must be at least 1");
+    for (flag, value) in [
+        ("--directions", args.directions),
+        ("--texels", args.texels),
+        ("--repeats", args.repeats),
+    ] {
+        let most = if flag == "--repeats" {
+            MAX_REPEATS
+        } else {
+            MAX_POINTS
+        };
+        if !(1..=most).contains(&value) {
+            bail!("{flag} {value}: give 1 to {most}");
+        }
+    }
+    if let Some(out) = &args.out {
+        super::output_file(out)?;
     }
     // Without files: the shipped maps, embedded in the binary.
     let maps: Vec<(String, EnvMap)> = if args.files.is_empty() {
