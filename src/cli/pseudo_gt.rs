@@ -87,8 +87,8 @@ pub fn run(args: PseudoGtArgs) -> anyhow::Result<()> {
     }
     let photos = args.photos.as_deref().context("--photos is required")?;
     let lights = collection_lights()?;
-    let total = photo_folder::list_photos(photos)?.len();
-    let bar = super::envmap::progress_bar(std::io::stderr().is_terminal(), total);
+    // Its length comes with the first report: make_dataset lists the photos once.
+    let bar = super::envmap::progress_bar(std::io::stderr().is_terminal(), 0);
     bar.set_message("photos");
     let start = Instant::now();
     let made = photo_folder::make_dataset(
@@ -98,6 +98,7 @@ pub fn run(args: PseudoGtArgs) -> anyhow::Result<()> {
         (&estimator, &file, &origin),
         &lights,
         &|done, total| {
+            bar.set_length(total as u64);
             bar.set_position(done as u64);
             if bar.is_hidden() {
                 tracing::info!("{done}/{total} photos");

@@ -271,7 +271,7 @@ fn fit_factor((w, h): (usize, usize), side: usize) -> Result<usize, (usize, usiz
 /// A photo of side `w` area-averaged over `k x k` blocks in linear light.
 fn average_photo(photo: &[Rgb], w: usize, k: usize) -> Vec<Rgb> {
     let linear: Vec<Rgb> = photo.iter().map(|c| c.map(srgb_to_linear)).collect();
-    crate::training_sample::area_downsample(&linear, w, k)
+    crate::resample::area_downsample(&linear, w, k)
         .into_iter()
         .map(|c| c.map(linear_to_srgb))
         .collect()
@@ -280,7 +280,7 @@ fn average_photo(photo: &[Rgb], w: usize, k: usize) -> Vec<Rgb> {
 /// A mask of side `w` area-averaged over `k x k` blocks.
 fn average_mask(mask: &[f32], w: usize, k: usize) -> Vec<f32> {
     let mask_rgb: Vec<[f32; 3]> = mask.iter().map(|&m| [m; 3]).collect();
-    crate::training_sample::area_downsample(&mask_rgb, w, k)
+    crate::resample::area_downsample(&mask_rgb, w, k)
         .into_iter()
         .map(|m| m[0])
         .collect()
@@ -322,7 +322,7 @@ fn fit(
     if k == 1 {
         return Ok((image, photo));
     }
-    let average = |layer: &[[f32; 3]]| crate::training_sample::area_downsample(layer, w, k);
+    let average = |layer: &[[f32; 3]]| crate::resample::area_downsample(layer, w, k);
     let photo = average_photo(&photo, w, k);
     let mask = average_mask(&image.mask, w, k);
     let normals = average(&image.normals)

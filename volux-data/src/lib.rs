@@ -44,5 +44,6 @@ pub mod light_map_cache;
 pub mod pose_distribution;
 pub mod procedural_sky;
 pub mod relighting;
+pub mod resample;
 pub mod synthetic_head;
 pub mod training_sample;

@@ -19,6 +19,7 @@ use volux_model::pose::Pose;
 
 use crate::layers::{Layer, Layers, rgb};
 use crate::relighting::{IntrinsicImage, RelightError, SpecularWeights, relight_weighted};
+use crate::resample;
 use crate::synthetic_head::{self, HeadRender, SyntheticError, SyntheticHead};
 
 /// Which light maps, rotated by how much, lit a sample.
@@ -170,9 +171,9 @@ pub fn make_sample(
         layers: Layers {
             photo: photo.into_flattened(),
             relit: layers.relit.into_flattened(),
-            albedo_lo: area_downsample(&albedo_hi, side, factor).into_flattened(),
+            albedo_lo: resample::area_downsample(&albedo_hi, side, factor).into_flattened(),
             albedo_hi: albedo_hi.into_flattened(),
-            normals_lo: area_downsample(&masked_normals, side, factor).into_flattened(),
+            normals_lo: resample::area_downsample(&masked_normals, side, factor).into_flattened(),
             mask: image.mask.clone(),
             diffuse: layers.diffuse.into_flattened(),
             specular: layers.specular.into_flattened(),
@@ -229,23 +230,6 @@ pub fn composite(photo: &[Rgb], mask: &[f32], background: Rgb) -> Vec<Rgb> {
         .collect()
 }
 
-/// Box-filter downsampling of a square `side x side` layer by `factor`.
-pub fn area_downsample(layer: &[[f32; 3]], side: usize, factor: usize) -> Vec<[f32; 3]> {
-    let lo = side / factor;
-    let scale = 1.0 / (factor * factor) as f32;
-    let mut out = vec![[0.0f32; 3]; lo * lo];
-    for y in 0..lo * factor {
-        for x in 0..lo * factor {
-            let o = &mut out[(y / factor) * lo + x / factor];
-            let v = layer[y * side + x];
-            for k in 0..3 {
-                o[k] += v[k] * scale;
-            }
-        }
-    }
-    out
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -281,16 +265,6 @@ mod tests {
                 LightingDraw::sample(environments, &mut b)
             );
         }
-    }
-
-    #[test]
-    fn area_downsampling_averages_blocks() {
-        let layer: Vec<[f32; 3]> = (0..16).map(|i| [i as f32, 1.0, -(i as f32)]).collect();
-        let lo = area_downsample(&layer, 4, 2);
-        assert_eq!(lo.len(), 4);
-        // Block (0, 0): pixels 0, 1, 4, 5.
-        assert_eq!(lo[0], [2.5, 1.0, -2.5]);
-        assert_eq!(lo[3], [12.5, 1.0, -12.5]);
     }
 
     #[test]

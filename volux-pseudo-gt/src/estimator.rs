@@ -17,7 +17,7 @@ use volux_envmap::Rgb;
 use volux_model::backend::to_f32_vec;
 use volux_model::unet::{UNet, UNetConfig};
 
-use crate::resample;
+use volux_data::resample;
 
 /// Output channels: albedo 3, normals 3, mask logit 1.
 const OUT_CHANNELS: usize = 7;

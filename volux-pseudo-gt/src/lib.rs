@@ -7,7 +7,6 @@ pub mod error;
 pub mod estimator;
 pub mod objective;
 pub mod photo_folder;
-pub mod resample;
 pub mod sheets;
 pub mod synthetic_pairs;
 pub mod training;

@@ -28,10 +28,10 @@ use volux_model::pose::Pose;
 
 use crate::error::PseudoGtError;
 use crate::estimator::{Estimate, Estimator};
-use crate::resample;
 use crate::sheets;
 use crate::synthetic_pairs::{HELD_OUT_FIRST, render_pair};
 use crate::weights::EstimatorFile;
+use volux_data::resample;
 
 /// The record of a pseudo-ground-truth folder.
 pub const RECORD: &str = "pseudo_gt.toml";
@@ -551,6 +551,19 @@ mod tests {
         assert!(worst < 1.0 / 255.0, "cropping moved a pixel by {worst}");
 
         let (estimator, file) = tiny_estimator();
+        let make = |photos: &Path, out: &Path, side: usize, origin: &str| {
+            make_dataset(
+                photos,
+                out,
+                side,
+                (&estimator, &file, origin),
+                &lights,
+                &|_, _| {},
+            )
+        };
+        let refused = |photos: &Path, out: &Path, side: usize, origin: &str| {
+            make(photos, out, side, origin).unwrap_err().to_string()
+        };
         let out = tempfile::tempdir().unwrap();
         let out = out.path().join("dataset");
         let calls = std::cell::Cell::new(0);
@@ -593,67 +606,23 @@ mod tests {
 
         // An interrupted run (one sample's photo missing) resumes: the rest is kept.
         fs::remove_file(&sample_paths(&out, "head1")[0]).unwrap();
-        let again = make_dataset(
-            photos.path(),
-            &out,
-            24,
-            (&estimator, &file, "tiny"),
-            &lights,
-            &|_, _| {},
-        )
-        .unwrap();
+        let again = make(photos.path(), &out, 24, "tiny").unwrap();
         assert_eq!((again.made, again.kept), (1, 2));
 
         // Another side into the same folder, or a foreign non-empty folder, is refused.
-        let e = make_dataset(
-            photos.path(),
-            &out,
-            32,
-            (&estimator, &file, "tiny"),
-            &lights,
-            &|_, _| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let e = refused(photos.path(), &out, 32, "tiny");
         assert!(
             e.contains("24 pixels") && e.contains("--resolution 24"),
             "{e}"
         );
         let foreign = tempfile::tempdir().unwrap();
         fs::write(foreign.path().join("mine.txt"), "keep me").unwrap();
-        let e = make_dataset(
-            photos.path(),
-            foreign.path(),
-            24,
-            (&estimator, &file, "tiny"),
-            &lights,
-            &|_, _| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let e = refused(photos.path(), foreign.path(), 24, "tiny");
         assert!(e.contains("not empty"), "{e}");
-        let e = make_dataset(
-            photos.path(),
-            &foreign.path().join("mine.txt"),
-            24,
-            (&estimator, &file, "tiny"),
-            &lights,
-            &|_, _| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let e = refused(photos.path(), &foreign.path().join("mine.txt"), 24, "tiny");
         assert!(e.contains("is a file"), "{e}");
         // Resuming with another estimator would mix two estimators' layers.
-        let e = make_dataset(
-            photos.path(),
-            &out,
-            24,
-            (&estimator, &file, "another"),
-            &lights,
-            &|_, _| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let e = refused(photos.path(), &out, 24, "another");
         assert!(e.contains("estimator tiny"), "{e}");
         // A blank photo is left out and named; the others are kept.
         save_srgb(
@@ -662,42 +631,16 @@ mod tests {
             32,
             &vec![[0.3; 3]; 32 * 32],
         );
-        let again = make_dataset(
-            photos.path(),
-            &out,
-            24,
-            (&estimator, &file, "tiny"),
-            &lights,
-            &|_, _| {},
-        )
-        .unwrap();
+        let again = make(photos.path(), &out, 24, "tiny").unwrap();
         assert_eq!((again.photos, again.made, again.kept), (4, 0, 3));
         assert_eq!(again.blank, ["blank"]);
         assert!(!sample_paths(&out, "blank")[0].exists());
         // A folder of blank photos alone is an error naming them.
         let blanks = tempfile::tempdir().unwrap();
         save_srgb(&blanks.path().join("grey.png"), 8, 8, &vec![[0.5; 3]; 64]);
-        let e = make_dataset(
-            blanks.path(),
-            &foreign.path().join("blank_set"),
-            24,
-            (&estimator, &file, "tiny"),
-            &lights,
-            &|_, _| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let e = refused(blanks.path(), &foreign.path().join("blank_set"), 24, "tiny");
         assert!(e.contains("blank: grey"), "{e}");
-        let e = make_dataset(
-            photos.path(),
-            &out,
-            4,
-            (&estimator, &file, "tiny"),
-            &lights,
-            &|_, _| {},
-        )
-        .unwrap_err()
-        .to_string();
+        let e = refused(photos.path(), &out, 4, "tiny");
         assert!(e.contains("resolution 4"), "{e}");
     }
 

@@ -1,7 +1,9 @@
-//! Square images on the host: centre crops and resizing. Downsizing averages the exact area
-//! each output pixel covers (a box filter with fractional weights, so any ratio keeps the
-//! image's mean); enlarging interpolates bilinearly between pixel centres, edges clamped.
-//! Images are row-major with `N` values per pixel.
+//! Square images on the host: centre crops and resizing, the one home of image resampling
+//! outside Burn. [`area_downsample`] is the data pipeline's integer box filter (output to
+//! volume resolution); [`resize`] takes any ratio: downsizing averages the exact area each
+//! output pixel covers (a box filter with fractional weights, so any ratio keeps the image's
+//! mean), enlarging interpolates bilinearly between pixel centres, edges clamped. Images are
+//! row-major with `N` values per pixel.
 
 /// The largest centred square of a `width x height` image, and its side.
 pub fn centre_crop<const N: usize>(
@@ -91,6 +93,23 @@ fn resize_bilinear<const N: usize>(texels: &[[f32; N]], from: usize, to: usize) 
     out
 }
 
+/// Box-filter downsampling of a square `side x side` layer by `factor`.
+pub fn area_downsample(layer: &[[f32; 3]], side: usize, factor: usize) -> Vec<[f32; 3]> {
+    let lo = side / factor;
+    let scale = 1.0 / (factor * factor) as f32;
+    let mut out = vec![[0.0f32; 3]; lo * lo];
+    for y in 0..lo * factor {
+        for x in 0..lo * factor {
+            let o = &mut out[(y / factor) * lo + x / factor];
+            let v = layer[y * side + x];
+            for k in 0..3 {
+                o[k] += v[k] * scale;
+            }
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -162,5 +181,27 @@ mod tests {
             tall.iter().map(|t| t[0]).collect::<Vec<_>>(),
             vec![4.0, 5.0, 6.0, 7.0]
         );
+    }
+
+    #[test]
+    fn area_downsampling_averages_blocks() {
+        let layer: Vec<[f32; 3]> = (0..16).map(|i| [i as f32, 1.0, -(i as f32)]).collect();
+        let lo = area_downsample(&layer, 4, 2);
+        assert_eq!(lo.len(), 4);
+        // Block (0, 0): pixels 0, 1, 4, 5.
+        assert_eq!(lo[0], [2.5, 1.0, -2.5]);
+        assert_eq!(lo[3], [12.5, 1.0, -12.5]);
+        // The integer box filter is `resize`'s area path at an integer ratio.
+        let image: Vec<[f32; 3]> = (0..36)
+            .map(|i| [(i * i % 11) as f32, 0.5, i as f32])
+            .collect();
+        for (a, b) in area_downsample(&image, 6, 3)
+            .iter()
+            .zip(resize(&image, 6, 2))
+        {
+            for c in 0..3 {
+                assert!((a[c] - b[c]).abs() < 1e-5, "{a:?} {b:?}");
+            }
+        }
     }
 }
