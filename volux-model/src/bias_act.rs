@@ -30,7 +30,7 @@ use burn::tensor::{DType, DispatchTensor, Tensor, activation};
 use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
-use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
+use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route, written_by};
 
 /// Negative slope of StyleGAN2's leaky ReLU.
 pub const LRELU_SLOPE: f64 = 0.2;
@@ -242,22 +242,27 @@ fn forward_flex(x: &FlexTensor, bias: &FlexTensor, gain: f64) -> FlexTensor {
     let (inner, channels) = layout(&shape);
     let (x, bias) = (contiguous(x), contiguous(bias));
     let (positive, negative) = (gain as f32, (gain * LRELU_SLOPE) as f32);
-    let mut out = vec![0.0f32; x.len()];
     let per_task = planes_per_task(inner);
     let chunk = per_task * inner.max(1);
-    out.par_chunks_mut(chunk)
-        .zip(x.par_chunks(chunk))
-        .enumerate()
-        .for_each(|(task, (out, x))| {
-            let planes = out.chunks_mut(inner.max(1)).zip(x.chunks(inner.max(1)));
-            for (p, (out, x)) in planes.enumerate() {
-                let b = bias[(task * per_task + p) % channels];
-                for (y, &x) in out.iter_mut().zip(x) {
-                    let z = x + b;
-                    *y = z * if z > 0.0 { positive } else { negative };
-                }
-            }
-        });
+    // SAFETY: the chunks of `out` and `x` pair up element for element, and every output
+    // element is written.
+    let out = unsafe {
+        written_by(x.len(), |out| {
+            out.par_chunks_mut(chunk)
+                .zip(x.par_chunks(chunk))
+                .enumerate()
+                .for_each(|(task, (out, x))| {
+                    let planes = out.chunks_mut(inner.max(1)).zip(x.chunks(inner.max(1)));
+                    for (p, (out, x)) in planes.enumerate() {
+                        let b = bias[(task * per_task + p) % channels];
+                        for (y, &x) in out.iter_mut().zip(x) {
+                            let z = x + b;
+                            y.write(z * if z > 0.0 { positive } else { negative });
+                        }
+                    }
+                })
+        })
+    };
     flex_tensor(out, shape)
 }
 
@@ -266,14 +271,24 @@ fn gradient_flex(g: &FlexTensor, y: &FlexTensor, gain: f64) -> FlexTensor {
     let shape = g.shape().to_vec();
     let (g, y) = (contiguous(g), contiguous(y));
     let (positive, negative) = (gain as f32, (gain * LRELU_SLOPE) as f32);
-    let mut out = vec![0.0f32; g.len()];
-    out.par_chunks_mut(TASK_ELEMENTS)
-        .zip(g.par_chunks(TASK_ELEMENTS).zip(y.par_chunks(TASK_ELEMENTS)))
-        .for_each(|(out, (g, y))| {
-            for ((o, &g), &y) in out.iter_mut().zip(g).zip(y) {
-                *o = g * if y > 0.0 { positive } else { negative };
-            }
-        });
+    assert_eq!(
+        g.len(),
+        y.len(),
+        "the gradient and the output differ in size"
+    );
+    // SAFETY: the chunks of `out`, `g` and `y` pair up element for element (equal lengths),
+    // and every output element is written.
+    let out = unsafe {
+        written_by(g.len(), |out| {
+            out.par_chunks_mut(TASK_ELEMENTS)
+                .zip(g.par_chunks(TASK_ELEMENTS).zip(y.par_chunks(TASK_ELEMENTS)))
+                .for_each(|(out, (g, y))| {
+                    for ((o, &g), &y) in out.iter_mut().zip(g).zip(y) {
+                        o.write(g * if y > 0.0 { positive } else { negative });
+                    }
+                })
+        })
+    };
     flex_tensor(out, shape)
 }
 
@@ -283,29 +298,41 @@ fn backward_flex(grad: &FlexTensor, y: &FlexTensor, gain: f64) -> (FlexTensor, F
     let (inner, channels) = layout(&shape);
     let (grad, y) = (contiguous(grad), contiguous(y));
     let (positive, negative) = (gain as f32, (gain * LRELU_SLOPE) as f32);
-    let mut grad_x = vec![0.0f32; y.len()];
+    assert_eq!(
+        grad.len(),
+        y.len(),
+        "the gradient and the output differ in size"
+    );
     let per_task = planes_per_task(inner);
     let chunk = per_task * inner.max(1);
-    let partial: Vec<Vec<f64>> = grad_x
-        .par_chunks_mut(chunk)
-        .zip(grad.par_chunks(chunk).zip(y.par_chunks(chunk)))
-        .enumerate()
-        .map(|(task, (out, (grad, y)))| {
-            let mut sums = vec![0.0f64; channels];
-            let planes = out
-                .chunks_mut(inner.max(1))
-                .zip(grad.chunks(inner.max(1)).zip(y.chunks(inner.max(1))));
-            for (p, (out, (grad, y))) in planes.enumerate() {
-                let mut sum = 0.0f32;
-                for ((o, &g), &y) in out.iter_mut().zip(grad).zip(y) {
-                    *o = g * if y > 0.0 { positive } else { negative };
-                    sum += *o;
-                }
-                sums[(task * per_task + p) % channels] += f64::from(sum);
-            }
-            sums
+    let mut partial: Vec<Vec<f64>> = Vec::new();
+    // SAFETY: the chunks of `grad_x`, `grad` and `y` pair up element for element (equal
+    // lengths), and every element of `grad_x` is written.
+    let grad_x = unsafe {
+        written_by(y.len(), |grad_x| {
+            partial = grad_x
+                .par_chunks_mut(chunk)
+                .zip(grad.par_chunks(chunk).zip(y.par_chunks(chunk)))
+                .enumerate()
+                .map(|(task, (out, (grad, y)))| {
+                    let mut sums = vec![0.0f64; channels];
+                    let planes = out
+                        .chunks_mut(inner.max(1))
+                        .zip(grad.chunks(inner.max(1)).zip(y.chunks(inner.max(1))));
+                    for (p, (out, (grad, y))) in planes.enumerate() {
+                        let mut sum = 0.0f32;
+                        for ((o, &g), &y) in out.iter_mut().zip(grad).zip(y) {
+                            let v = g * if y > 0.0 { positive } else { negative };
+                            o.write(v);
+                            sum += v;
+                        }
+                        sums[(task * per_task + p) % channels] += f64::from(sum);
+                    }
+                    sums
+                })
+                .collect();
         })
-        .collect();
+    };
     let mut grad_bias = vec![0.0f64; channels];
     for sums in partial {
         for (total, s) in grad_bias.iter_mut().zip(sums) {

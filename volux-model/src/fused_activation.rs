@@ -26,7 +26,11 @@ use burn::tensor::{DType, DispatchTensor, Tensor};
 use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
-use crate::flex_extension::{Route, autodiff_parts, contiguous, dispatch_simd, flex_tensor, route};
+use std::mem::MaybeUninit;
+
+use crate::flex_extension::{
+    Route, autodiff_parts, contiguous, dispatch_simd, flex_tensor, route, written_by,
+};
 use crate::neiif::{SMOOTH_GAIN, smooth_lrelu};
 
 /// Rows of `o` channels per parallel task.
@@ -180,7 +184,7 @@ pub(crate) fn parts(z: f32) -> (f32, f32, f32) {
 /// flat offset of those rows in the inputs, and the inputs.
 struct KernelArgs<'a> {
     offset: usize,
-    out: &'a mut [f32],
+    out: &'a mut [MaybeUninit<f32>],
     y: &'a [f32],
     grad: &'a [f32],
     bias: &'a [f32],
@@ -200,7 +204,7 @@ fn forward_task(args: KernelArgs<'_>) -> Vec<f32> {
     for (r, row) in out.chunks_exact_mut(o).enumerate() {
         let at = offset + r * o;
         for ((v, yv), b) in row.iter_mut().zip(&y[at..at + o]).zip(bias) {
-            *v = parts(yv + b).0;
+            v.write(parts(yv + b).0);
         }
     }
     Vec::new()
@@ -222,8 +226,9 @@ fn backward_task(args: KernelArgs<'_>) -> Vec<f32> {
         let at = offset + r * o;
         let rows = row.iter_mut().zip(&y[at..at + o]).zip(&grad[at..at + o]);
         for ((((v, yv), g), b), total) in rows.zip(bias).zip(&mut bias_sum) {
-            *v = g * parts(yv + b).1;
-            *total += *v;
+            let d = g * parts(yv + b).1;
+            v.write(d);
+            *total += d;
         }
     }
     bias_sum
@@ -233,8 +238,10 @@ fn forward_flex(y: &FlexTensor, bias: &FlexTensor) -> FlexTensor {
     let shape = y.shape().to_vec();
     let o = shape[2];
     let (y, bias) = (contiguous(y), contiguous(bias));
-    let mut out = vec![0.0f32; y.len()];
-    if o > 0 {
+    let fill = |out: &mut [MaybeUninit<f32>]| {
+        if o == 0 {
+            return;
+        }
         out.par_chunks_mut(ROWS_PER_TASK * o)
             .enumerate()
             .for_each(|(task, rows)| {
@@ -249,8 +256,11 @@ fn forward_flex(y: &FlexTensor, bias: &FlexTensor) -> FlexTensor {
                     },
                     KernelArgs<'_>
                 );
-            });
-    }
+            })
+    };
+    // SAFETY: `y` is `[.., o]` (o = 0: no elements), so the tasks' whole rows cover every
+    // output element, and each task writes all of its rows.
+    let out = unsafe { written_by(y.len(), fill) };
     flex_tensor(out, shape)
 }
 
@@ -259,10 +269,13 @@ fn backward_flex(y: &FlexTensor, bias: &FlexTensor, grad: &FlexTensor) -> (FlexT
     let shape = y.shape().to_vec();
     let o = shape[2];
     let (y, bias, grad) = (contiguous(y), contiguous(bias), contiguous(grad));
-    let mut grad_y = vec![0.0f32; y.len()];
     let mut grad_bias = vec![0.0f32; o];
-    if o > 0 {
-        let partial_bias: Vec<Vec<f32>> = grad_y
+    let mut partial_bias: Vec<Vec<f32>> = Vec::new();
+    let fill = |grad_y: &mut [MaybeUninit<f32>]| {
+        if o == 0 {
+            return;
+        }
+        partial_bias = grad_y
             .par_chunks_mut(ROWS_PER_TASK * o)
             .enumerate()
             .map(|(task, rows)| {
@@ -279,10 +292,12 @@ fn backward_flex(y: &FlexTensor, bias: &FlexTensor, grad: &FlexTensor) -> (FlexT
                 )
             })
             .collect();
-        for partial in partial_bias {
-            for (total, v) in grad_bias.iter_mut().zip(partial) {
-                *total += v;
-            }
+    };
+    // SAFETY: as in `forward_flex`: the tasks' whole rows cover every element of `grad_y`.
+    let grad_y = unsafe { written_by(y.len(), fill) };
+    for partial in partial_bias {
+        for (total, v) in grad_bias.iter_mut().zip(partial) {
+            *total += v;
         }
     }
     (flex_tensor(grad_y, shape), flex_tensor(grad_bias, vec![o]))

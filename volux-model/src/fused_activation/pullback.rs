@@ -26,7 +26,11 @@ use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
 
 use super::{ROWS_PER_TASK, parts};
-use crate::flex_extension::{Route, autodiff_parts, contiguous, dispatch_simd, flex_tensor, route};
+use std::mem::MaybeUninit;
+
+use crate::flex_extension::{
+    Route, autodiff_parts, contiguous, dispatch_simd, flex_tensor, route, written_by,
+};
 use crate::neiif::smooth_lrelu_parts;
 
 /// `u a'(y + bias)` for `u, y: [batch, p, o]` and `bias: [o]` (see the module documentation).
@@ -126,7 +130,7 @@ impl Backward<Flex, 3> for PullbackBackward {
 /// forward; `dL/du` then `dL/dy` backward).
 struct PullbackArgs<'a> {
     offset: usize,
-    out: [&'a mut [f32]; 2],
+    out: [&'a mut [MaybeUninit<f32>]; 2],
     u: &'a [f32],
     y: &'a [f32],
     grad: &'a [f32],
@@ -150,7 +154,7 @@ fn forward_task(args: PullbackArgs<'_>) -> Vec<f32> {
         let rows = v_row.iter_mut().zip(&u[at..at + o]).zip(&y[at..at + o]);
         for (((v, u), y), b) in rows.zip(bias) {
             let (_, first, _) = parts(y + b);
-            *v = u * first;
+            v.write(u * first);
         }
     }
     Vec::new()
@@ -175,9 +179,10 @@ fn backward_task(args: PullbackArgs<'_>) -> Vec<f32> {
         let (u_row, y_row, g_row) = (&u[at..at + o], &y[at..at + o], &grad[at..at + o]);
         for c in 0..o {
             let (_, first, second) = parts(y_row[c] + bias[c]);
-            gu_row[c] = g_row[c] * first;
-            gy_row[c] = g_row[c] * u_row[c] * second;
-            bias_sum[c] += gy_row[c];
+            let gy = g_row[c] * u_row[c] * second;
+            gu_row[c].write(g_row[c] * first);
+            gy_row[c].write(gy);
+            bias_sum[c] += gy;
         }
     }
     bias_sum
@@ -187,8 +192,15 @@ fn forward_flex(u: &FlexTensor, y: &FlexTensor, bias: &FlexTensor) -> FlexTensor
     let shape = y.shape().to_vec();
     let o = shape[2];
     let (u, y, bias) = (contiguous(u), contiguous(y), contiguous(bias));
-    let mut out = vec![0.0f32; y.len()];
-    if o > 0 {
+    assert_eq!(
+        u.len(),
+        y.len(),
+        "the cotangent and the pre-activation differ in size"
+    );
+    let fill = |out: &mut [MaybeUninit<f32>]| {
+        if o == 0 {
+            return;
+        }
         out.par_chunks_mut(ROWS_PER_TASK * o)
             .enumerate()
             .for_each(|(task, rows)| {
@@ -204,8 +216,11 @@ fn forward_flex(u: &FlexTensor, y: &FlexTensor, bias: &FlexTensor) -> FlexTensor
                     },
                     PullbackArgs<'_>
                 );
-            });
-    }
+            })
+    };
+    // SAFETY: `y` is `[.., o]` (o = 0: no elements), so the tasks' whole rows cover every
+    // output element, and each task writes all of its rows.
+    let out = unsafe { written_by(y.len(), fill) };
     flex_tensor(out, shape)
 }
 
@@ -224,11 +239,17 @@ fn backward_flex(
         contiguous(bias),
         contiguous(grad),
     );
-    let mut grad_u = vec![0.0f32; y.len()];
-    let mut grad_y = vec![0.0f32; y.len()];
+    let len = y.len();
+    assert!(
+        u.len() == len && grad.len() == len,
+        "the cotangent, the pre-activation and the gradient differ in size"
+    );
     let mut grad_bias = vec![0.0f32; o];
-    if o > 0 {
-        let partial_bias: Vec<Vec<f32>> = grad_u
+    let tasks = |grad_u: &mut [MaybeUninit<f32>], grad_y: &mut [MaybeUninit<f32>]| {
+        if o == 0 {
+            return Vec::new();
+        }
+        grad_u
             .par_chunks_mut(ROWS_PER_TASK * o)
             .zip(grad_y.par_chunks_mut(ROWS_PER_TASK * o))
             .enumerate()
@@ -246,11 +267,20 @@ fn backward_flex(
                     PullbackArgs<'_>
                 )
             })
-            .collect();
-        for partial in partial_bias {
-            for (total, v) in grad_bias.iter_mut().zip(partial) {
-                *total += v;
-            }
+            .collect::<Vec<Vec<f32>>>()
+    };
+    let mut partial_bias = Vec::new();
+    let mut grad_y = Vec::new();
+    // SAFETY (both): as in `forward_flex`, the tasks' whole rows cover every element of
+    // `grad_u` and `grad_y`, which are chunked alike.
+    let grad_u = unsafe {
+        written_by(len, |gu| {
+            grad_y = written_by(len, |gy| partial_bias = tasks(gu, gy));
+        })
+    };
+    for partial in partial_bias {
+        for (total, v) in grad_bias.iter_mut().zip(partial) {
+            *total += v;
         }
     }
     (
