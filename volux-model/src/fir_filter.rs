@@ -38,9 +38,12 @@ use burn::tensor::ops::ConvOptions;
 use burn::tensor::{DType, DispatchTensor, Tensor};
 use burn_dispatch::DispatchKindConversion;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 use crate::equalized::conv_transpose_to;
-use crate::flex_extension::{Route, autodiff_parts, contiguous, flex_tensor, route};
+use crate::flex_extension::{
+    Route, autodiff_parts, contiguous, flex_tensor, route, with_scratch, written_by, zeroed,
+};
 
 /// A separable filter with its zero padding and output stride.
 #[derive(Clone, Debug, PartialEq)]
@@ -224,16 +227,41 @@ fn kernel(x: &FlexTensor, fir: &Fir, direction: Direction, out_hw: [usize; 2]) -
     let [b, c, h, w] = [shape[0], shape[1], shape[2], shape[3]];
     let [ho, wo] = out_hw;
     let x = contiguous(x);
-    let mut out = vec![0.0f32; b * c * ho * wo];
-    if !out.is_empty() && h * w > 0 {
-        out.par_chunks_mut(ho * wo)
-            .zip(x.par_chunks(h * w))
-            .for_each(|(y, x)| match direction {
-                Direction::Forward => forward_plane(fir, x, [h, w], y, [ho, wo]),
-                // The adjoint's input is the forward pass's output and vice versa.
-                Direction::Adjoint => adjoint_plane(fir, x, [h, w], y, [ho, wo]),
-            });
+    let len = b * c * ho * wo;
+    if h * w == 0 || len == 0 {
+        // No input: the filter of nothing is zero.
+        return flex_tensor(vec![0.0; len], vec![b, c, ho, wo]);
     }
+    // Per thread, the row pass's plane (input rows by output columns forward, output rows by
+    // input columns adjoint) and the phases of one padded row (of the input forward, of the
+    // output adjoint).
+    let (rows_len, phase_w) = match direction {
+        Direction::Forward => (h * wo, w),
+        Direction::Adjoint => (ho * w, wo),
+    };
+    let scratch = rows_len + Phases::len(fir, phase_w);
+    let plane = |(y, x): (&mut [MaybeUninit<f32>], &[f32])| {
+        // Both passes add onto the output plane, zeroed here while it is in cache.
+        let y = zeroed(y);
+        with_scratch(scratch, |buffer| {
+            let (rows, phases) = buffer.split_at_mut(rows_len);
+            let phases = Phases::new(fir, phase_w, phases);
+            match direction {
+                Direction::Forward => forward_plane(fir, x, [h, w], y, [ho, wo], rows, phases),
+                // The adjoint's input is the forward pass's output and vice versa.
+                Direction::Adjoint => adjoint_plane(fir, x, [h, w], y, [ho, wo], rows, phases),
+            }
+        });
+    };
+    // SAFETY: the `b c` output planes pair up with the `b c` input planes (`ho wo` and `h w`
+    // both non-zero), and every output plane is written whole (zeroed first).
+    let out = unsafe {
+        written_by(len, |out| {
+            out.par_chunks_mut(ho * wo)
+                .zip(x.par_chunks(h * w))
+                .for_each(plane)
+        })
+    };
     flex_tensor(out, vec![b, c, ho, wo])
 }
 
@@ -242,19 +270,27 @@ fn kernel(x: &FlexTensor, fir: &Fir, direction: Direction, out_hw: [usize; 2]) -
 /// reads padded entry `j s + u`, i.e. `phases[u % s][j + u / s]`: for every tap a contiguous
 /// run of `wo` entries, so the row passes below are one vectorisable multiply-add per tap
 /// instead of a strided window per output.
-struct Phases {
+struct Phases<'a> {
     stride: usize,
     len: usize,
-    values: Vec<f32>,
+    values: &'a mut [f32],
 }
 
-impl Phases {
-    fn new(fir: &Fir, w: usize) -> Self {
+impl<'a> Phases<'a> {
+    /// Elements of the phases of a padded row of `w` inputs.
+    fn len(fir: &Fir, w: usize) -> usize {
+        fir.stride * (w + 2 * fir.pad).div_ceil(fir.stride)
+    }
+
+    /// The phases in `buffer` (at least [`Self::len`] elements), zeroed.
+    fn new(fir: &Fir, w: usize, buffer: &'a mut [f32]) -> Self {
         let len = (w + 2 * fir.pad).div_ceil(fir.stride);
+        let values = &mut buffer[..fir.stride * len];
+        values.fill(0.0);
         Self {
             stride: fir.stride,
             len,
-            values: vec![0.0; fir.stride * len],
+            values,
         }
     }
 
@@ -306,10 +342,18 @@ impl Phases {
 }
 
 /// `y = fir(x)` on one plane: rows first (into `[h, wo]`), then columns.
-fn forward_plane(fir: &Fir, x: &[f32], [h, w]: [usize; 2], y: &mut [f32], [_, wo]: [usize; 2]) {
+fn forward_plane(
+    fir: &Fir,
+    x: &[f32],
+    [h, w]: [usize; 2],
+    y: &mut [f32],
+    [_, wo]: [usize; 2],
+    rows: &mut [f32],
+    mut phases: Phases<'_>,
+) {
     let (k, p, s) = (&fir.taps, fir.pad, fir.stride);
-    let mut phases = Phases::new(fir, w);
-    let mut rows = vec![0.0f32; h * wo];
+    debug_assert_eq!(rows.len(), h * wo);
+    rows.fill(0.0);
     for (x_row, r_row) in x.chunks_exact(w).zip(rows.chunks_exact_mut(wo)) {
         phases.load(x_row, p);
         for (u, &tap) in k.iter().enumerate() {
@@ -332,9 +376,18 @@ fn forward_plane(fir: &Fir, x: &[f32], [h, w]: [usize; 2], y: &mut [f32], [_, wo
 }
 
 /// `x = fir^T(y)` on one plane (`y: [ho, wo]`, `x: [h, w]`): columns first, then rows.
-fn adjoint_plane(fir: &Fir, y: &[f32], [_, wo]: [usize; 2], x: &mut [f32], [h, w]: [usize; 2]) {
+fn adjoint_plane(
+    fir: &Fir,
+    y: &[f32],
+    [_, wo]: [usize; 2],
+    x: &mut [f32],
+    [h, w]: [usize; 2],
+    rows: &mut [f32],
+    mut phases: Phases<'_>,
+) {
     let (k, p, s) = (&fir.taps, fir.pad, fir.stride);
-    let mut rows = vec![0.0f32; h * wo];
+    debug_assert_eq!(rows.len(), h * wo);
+    rows.fill(0.0);
     for (i, y_row) in y.chunks_exact(wo).enumerate() {
         for (u, &tap) in k.iter().enumerate() {
             let Some(r) = (i * s + u).checked_sub(p).filter(|r| *r < h) else {
@@ -345,7 +398,6 @@ fn adjoint_plane(fir: &Fir, y: &[f32], [_, wo]: [usize; 2], x: &mut [f32], [h, w
             }
         }
     }
-    let mut phases = Phases::new(fir, w);
     for (r_row, x_row) in rows.chunks_exact(wo).zip(x.chunks_exact_mut(w)) {
         phases.values.fill(0.0);
         for (u, &tap) in k.iter().enumerate() {

@@ -7,6 +7,7 @@ use std::mem::MaybeUninit;
 
 use super::kernels::{matmul, rows, rows_out, rows_uninit, transposed};
 use super::{ConvGeometry, Shape};
+use crate::flex_extension::zeroed;
 
 /// The columns `lo..hi` of the output along one axis whose input index
 /// `out * stride + tap - pad` falls inside `0..n`.
@@ -146,10 +147,7 @@ pub(super) fn adjoint_image(
         )
     };
     // col2im adds every patch entry onto its input position: `x_b` starts at zero.
-    x_b.fill(MaybeUninit::new(0.0));
-    // SAFETY: every element was initialised just above.
-    let x_b = unsafe { &mut *(x_b as *mut [MaybeUninit<f32>] as *mut [f32]) };
-    col2im(col, s, x_b);
+    col2im(col, s, zeroed(x_b));
 }
 
 /// `dW^T += col(x_b) g_b^T` for one image into `dw_t` (`[c k k, o]`): the product in this
