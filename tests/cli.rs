@@ -359,6 +359,23 @@ fn data_heads_writes_a_contact_sheet_and_reports_speed() {
         t.contains("18446744073709551616 seeds: give 1 to 1024"),
         "{t}"
     );
+    // A non-finite environment rotation is refused (NaN made black shading and photos).
+    for yaw in ["nan", "inf"] {
+        let o = volux(&[
+            "data",
+            "heads",
+            "--seeds",
+            "0",
+            "--side",
+            "16",
+            &format!("--env-yaw={yaw}"),
+            "--out",
+            dir.path().to_str().unwrap(),
+        ]);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{t}");
+        assert!(t.contains("--env-yaw") && t.contains("finite"), "{t}");
+    }
 }
 
 /// Three steps of stage 1 and three of stage 2 at batch 2 with few samples per ray.
@@ -1022,4 +1039,73 @@ fn outputs_that_are_files_and_huge_sizes_are_refused_before_work() {
         assert_eq!(o.status.code(), Some(1), "{args:?}: {t}");
         assert!(t.contains(says), "{args:?}: {t}");
     }
+}
+
+/// `--steps 0` is refused (it wrote an untrained checkpoint and exited 0), and config values
+/// beyond their limits are named with the file before any work: a prefetch of 10^12 aborted
+/// on allocation, an R1 gamma of 1e308 overflowed f32 and skipped every step as non-finite.
+#[test]
+fn train_refuses_zero_steps_and_config_values_beyond_their_limits() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let run_s = run.to_str().unwrap();
+    let o = volux(&[
+        "train",
+        "--config",
+        "configs/quickstart.toml",
+        "--out",
+        run_s,
+        "--steps",
+        "0",
+    ]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("--steps 0: give at least 1"), "{t}");
+    assert!(!run.exists(), "nothing written");
+    for (from, to, says) in [
+        (
+            "batch = 2",
+            "batch = 2\nprefetch = 1000000000000",
+            "train.prefetch = 1000000000000 must be in 0..=16",
+        ),
+        (
+            "batch = 2",
+            "batch = 2\nr1_gamma = 1e308",
+            "train.r1_gamma = 1000",
+        ),
+        (
+            "sphere_prior = 10.0",
+            "sphere_prior = 1e308",
+            "model.sphere_prior = 1000",
+        ),
+    ] {
+        let config = dir.path().join("hostile.toml");
+        std::fs::write(&config, TINY_TRAINING.replace(from, to)).unwrap();
+        let o = volux(&[
+            "train",
+            "--config",
+            config.to_str().unwrap(),
+            "--out",
+            run_s,
+            "--steps",
+            "1",
+        ]);
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(1), "{to}: {t}");
+        assert!(t.contains("hostile.toml") && t.contains(says), "{to}: {t}");
+        assert!(!run.exists(), "{to}: nothing written");
+    }
+}
+
+/// `volux report` of a run folder that does not exist fails without creating it (the output
+/// file's folder was made first, so a mistyped name left an empty folder behind).
+#[test]
+fn a_report_of_a_missing_run_folder_creates_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let missing = dir.path().join("no_such_run");
+    let o = volux(&["report", missing.to_str().unwrap()]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("not a run folder"), "{t}");
+    assert!(!missing.exists(), "{t}");
 }

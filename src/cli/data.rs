@@ -167,6 +167,12 @@ fn heads(args: HeadsArgs) -> anyhow::Result<()> {
             args.supersample
         );
     }
+    if !args.env_yaw.is_finite() {
+        bail!(
+            "--env-yaw {}: degrees must be a finite number",
+            args.env_yaw
+        );
+    }
     super::output_folder(&args.out)?;
     let (_, map) = super::environment::env_map(args.hdri.as_deref(), "sunrise")?;
     let set = preconvolve(&map, &PreconvolveOptions::default())?;

@@ -3,6 +3,7 @@
 
 use std::path::PathBuf;
 
+use anyhow::bail;
 use clap::Args;
 use volux_eval::run_page::save_run_page;
 
@@ -16,6 +17,10 @@ pub struct ReportArgs {
 }
 
 pub fn run(args: ReportArgs) -> anyhow::Result<()> {
+    // Checked before the output's folder is made: a mistyped RUN created an empty folder.
+    if !args.run.is_dir() {
+        bail!("{}: not a run folder (no such folder)", args.run.display());
+    }
     let out = args.out.unwrap_or_else(|| args.run.join("report.html"));
     super::output_file(&out)?;
     let name = args

@@ -51,7 +51,7 @@ pub struct TrainArgs {
     /// metrics.jsonl and grids/ (without it such a folder is refused).
     #[arg(long)]
     pub force: bool,
-    /// Stop after this many steps (a checkpoint is written first).
+    /// Stop after this many steps, at least 1 (a checkpoint is written first).
     #[arg(long)]
     pub steps: Option<u64>,
 }
@@ -130,6 +130,13 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
 }
 
 fn run_training(args: TrainArgs) -> anyhow::Result<()> {
+    if args.steps == Some(0) {
+        // As StyleGAN2-ADA refuses `--kimg 0`: a run of no steps only writes an untrained
+        // checkpoint, and into a folder holding a run it would stand for that run.
+        bail!(
+            "--steps 0: give at least 1 (a run of no steps would only write an untrained checkpoint)"
+        );
+    }
     let config_path = args.config.clone().expect("clap requires --config");
     let config = TrainConfig::load(&config_path)?;
     let out = args

@@ -64,61 +64,28 @@ impl Dataset {
         if lights.is_empty() {
             return Err(DataError::Config("the light-map bank is empty".into()));
         }
+        config.validate()?;
         let factor = config.factor()?;
         let side = config.resolution;
-        if let Some(k) = config
-            .background
-            .iter()
-            .position(|v| !(0.0..=1.0).contains(v))
-        {
-            return Err(DataError::Config(format!(
-                "background[{k}] = {} must be in [0, 1]",
-                config.background[k]
-            )));
-        }
         let source = match &config.source {
             SourceConfig::Synthetic {
                 identities,
                 supersample,
                 poses,
-            } => {
-                if *identities == 0 {
-                    return Err(DataError::Config(
-                        "source.identities must be at least 1".into(),
-                    ));
-                }
-                if !(1..=4).contains(supersample) {
-                    return Err(DataError::Config(format!(
-                        "source.supersample = {supersample} must be 1 to 4"
-                    )));
-                }
-                poses
-                    .validate()
-                    .map_err(|e| DataError::Config(format!("source.poses.{e}")))?;
-                Source::Synthetic {
-                    identities: *identities,
-                    settings: RenderSettings {
-                        supersample: *supersample,
-                        ..RenderSettings::square(side)
-                    },
-                    poses: *poses,
-                }
-            }
+            } => Source::Synthetic {
+                identities: *identities,
+                settings: RenderSettings {
+                    supersample: *supersample,
+                    ..RenderSettings::square(side)
+                },
+                poses: *poses,
+            },
             SourceConfig::Folder {
                 path,
                 specular_weights,
                 layers,
             } => {
                 let content = folder_content(layers).map_err(DataError::Config)?;
-                if let Some(k) = specular_weights
-                    .iter()
-                    .position(|w| !(w.is_finite() && *w >= 0.0))
-                {
-                    return Err(DataError::Config(format!(
-                        "source.specular_weights[{k}] = {} must be finite and >= 0",
-                        specular_weights[k]
-                    )));
-                }
                 Source::Folder {
                     dataset: FolderDataset::open_with(path, content)?,
                     specular_weights: *specular_weights,
@@ -199,7 +166,7 @@ impl Dataset {
                     let loaded = dataset.load_photo(i)?;
                     let stem = loaded.stem.clone();
                     let size_error = |(width, height)| DataError::FolderSize {
-                        stem: stem.clone(),
+                        path: dataset.photo_path(i).to_path_buf(),
                         width,
                         height,
                         side: self.side,
@@ -227,7 +194,7 @@ impl Dataset {
                 let (image, photo) =
                     fit(loaded.image, loaded.photo, self.side).map_err(|(width, height)| {
                         DataError::FolderSize {
-                            stem: stem.clone(),
+                            path: dataset.photo_path(i).to_path_buf(),
                             width,
                             height,
                             side: self.side,

@@ -372,6 +372,11 @@ impl FolderDataset {
         self.entries.iter().map(|e| e.stem.as_str())
     }
 
+    /// The photo file of sample `i`. Panics if `i >= len()`.
+    pub fn photo_path(&self, i: usize) -> &Path {
+        &self.entries[i].photo
+    }
+
     /// Camera pose of sample `i`. Panics if `i >= len()`.
     pub fn pose(&self, i: usize) -> Pose {
         self.entries[i].pose
@@ -497,6 +502,19 @@ impl FolderDataset {
                 path: files.normals.clone(),
                 reason: "normals face away from the camera",
                 percent: percent(away),
+            });
+        }
+        // A grey image (one channel, or three equal ones) decodes to normals along the
+        // diagonal (1, 1, 1) alone: not a normal map, though most of it faces the camera.
+        if normals
+            .iter()
+            .zip(&mask)
+            .all(|(n, &m)| m <= 0.0 || (n[0] == n[1] && n[1] == n[2]))
+        {
+            return Err(FolderError::BadNormals {
+                path: files.normals.clone(),
+                reason: "normals have equal x, y and z (a greyscale image?)",
+                percent: 100.0,
             });
         }
 

@@ -5,6 +5,8 @@
 use volux_envmap::random::SplitMix64;
 use volux_model::pose::Pose;
 
+use crate::folder_dataset::MAX_YAW;
+
 /// Gaussian yaw and pitch, radians.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Deserialize, serde::Serialize)]
 #[serde(deny_unknown_fields, default)]
@@ -38,7 +40,10 @@ impl PoseDistribution {
         )
     }
 
-    /// Checks that the deviations are finite and non-negative, naming the bad field.
+    /// Checks that the values are finite, the deviations non-negative and every draw (within
+    /// the truncation) a pose `poses.csv` accepts: a yaw within `[-2 pi, 2 pi]`
+    /// ([`MAX_YAW`]) and a pitch strictly between `-pi/2` and `pi/2` (past it the camera turns
+    /// over; a deviation of 1e308 overflowed the draws to infinity). Names the bad field.
     pub fn validate(&self) -> Result<(), String> {
         let fields = [
             ("yaw_mean", self.yaw_mean),
@@ -57,6 +62,20 @@ impl PoseDistribution {
                     }
                 ));
             }
+        }
+        let yaw_reach = self.yaw_mean.abs() + TRUNCATION * self.yaw_sd;
+        if yaw_reach > MAX_YAW {
+            return Err(format!(
+                "yaw_mean = {} and yaw_sd = {} draw yaws up to {yaw_reach:.4} radians ({TRUNCATION} sd): every draw must lie within [-2 pi, 2 pi]",
+                self.yaw_mean, self.yaw_sd
+            ));
+        }
+        let pitch_reach = self.pitch_mean.abs() + TRUNCATION * self.pitch_sd;
+        if pitch_reach >= std::f64::consts::FRAC_PI_2 {
+            return Err(format!(
+                "pitch_mean = {} and pitch_sd = {} draw pitches up to {pitch_reach:.4} radians ({TRUNCATION} sd): every draw must lie strictly between -pi/2 and pi/2",
+                self.pitch_mean, self.pitch_sd
+            ));
         }
         Ok(())
     }
@@ -108,5 +127,32 @@ mod tests {
             .unwrap_err()
             .contains("pitch_sd")
         );
+        // Draws past the camera's range (1e308 overflowed them to infinity) are refused.
+        for (bad, key) in [
+            (
+                PoseDistribution {
+                    pitch_sd: 1e308,
+                    ..dist
+                },
+                "pitch_sd = 1000",
+            ),
+            (
+                PoseDistribution {
+                    pitch_mean: 1.5,
+                    ..dist
+                },
+                "pitch_mean = 1.5",
+            ),
+            (
+                PoseDistribution {
+                    yaw_mean: 1e300,
+                    ..dist
+                },
+                "yaw_mean = 1000",
+            ),
+        ] {
+            let e = bad.validate().unwrap_err();
+            assert!(e.contains(key) && e.contains("every draw"), "{e}");
+        }
     }
 }

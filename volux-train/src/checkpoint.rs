@@ -79,6 +79,16 @@ pub enum CheckpointError {
         "{path}: parameter `{parameter}` holds NaN or infinity: the file is damaged; resume or sample from an older checkpoint of the run"
     )]
     NonFinite { path: PathBuf, parameter: String },
+    /// An optimiser state that a loaded run must not step with (Burn's loader panics on a
+    /// tensor without a parameter id, and NaN moments make every step non-finite).
+    #[error(
+        "{path}: optimiser state `{tensor}` {problem}: the file is damaged; resume from an older checkpoint of the run"
+    )]
+    OptimizerState {
+        path: PathBuf,
+        tensor: String,
+        problem: &'static str,
+    },
     #[error(
         "checkpoint {path} was written by a run with other shapes:\n  checkpoint: {checkpoint}\n  config:     {config}"
     )]
@@ -336,6 +346,7 @@ pub fn load(dir: &Path, nets: Networks) -> Result<Networks, CheckpointError> {
     finite(dir.join(DISCRIMINATORS), &d)?;
     let opt = |o: ModuleOptimizer, name: &str| {
         let p = dir.join(name);
+        check_optimizer_state(&p)?;
         o.load(&p).map_err(|e| record_error(&p, e))
     };
     Ok(Networks {
@@ -370,6 +381,43 @@ pub fn load_ema_bytes(
         .map_err(|e| record_error(origin, e))?;
     finite(origin.to_path_buf(), &ema)?;
     Ok(ema)
+}
+
+/// Refuses an optimiser state file with a tensor that carries no parameter id or holds NaN or
+/// infinity, before Burn loads it.
+fn check_optimizer_state(path: &Path) -> Result<(), CheckpointError> {
+    let pack = |e: burn_pack::Error| record_error(path, e.into());
+    // Read whole: a file-backed reader reads tensors lazily and panics if that read fails.
+    let bytes = fs::read(path).map_err(|e| file_error(path, e))?;
+    let tensors = burn_pack::Reader::from_bytes(burn_pack::Bytes::from_bytes_vec(bytes))
+        .and_then(burn_pack::Reader::into_tensors)
+        .map_err(pack)?;
+    for tensor in tensors {
+        let (name, dtype, _, param_id, bytes) = tensor.into_parts().map_err(pack)?;
+        let bad = |problem| {
+            Err(CheckpointError::OptimizerState {
+                path: path.to_path_buf(),
+                tensor: name.clone(),
+                problem,
+            })
+        };
+        if param_id.is_none() {
+            return bad("carries no parameter id");
+        }
+        let finite = match dtype {
+            burn_pack::DType::F32 => bytes
+                .chunks_exact(4)
+                .all(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]).is_finite()),
+            burn_pack::DType::F64 => bytes.chunks_exact(8).all(|b| {
+                f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]).is_finite()
+            }),
+            _ => true,
+        };
+        if !finite {
+            return bad("holds NaN or infinity");
+        }
+    }
+    Ok(())
 }
 
 /// Refuses a loaded module with a NaN or an infinity in any parameter.

@@ -39,6 +39,19 @@ pub const MAX_BATCH: usize = 1024;
 /// The most samples of any one kind per ray a config may ask for.
 pub const MAX_SAMPLES_PER_RAY: usize = 1024;
 
+/// The largest learning rate, R1 gamma, loss weight or sphere-prior sharpness a config may
+/// give: each multiplies f32 values, and far above this they overflow (1e308 is infinity in
+/// f32, and every step was skipped as non-finite with no cause named).
+pub const MAX_WEIGHT: f64 = 1e6;
+
+/// The most latents a sample grid may have (`[output] grid_seeds`, one column each, as
+/// `volux sample --seeds`): 100 000 aborted after a minute asking for 40 GB.
+pub const MAX_GRID_SEEDS: usize = 64;
+
+/// The most batches a config may ask to be prepared ahead (`[train] prefetch`): each is held
+/// in memory (a batch of 24 at 256x256 is about 100 MiB), and 10^12 aborted on allocation.
+pub const MAX_PREFETCH: usize = 16;
+
 /// `[model]`: a preset size, optionally with fewer or more samples per ray.
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
@@ -135,8 +148,10 @@ impl ModelConfig {
             }
         }
         if let Some(s) = self.sphere_prior {
-            if !(s.is_finite() && s >= 0.0) {
-                return Err(format!("model.sphere_prior = {s} must be finite and >= 0"));
+            if !(0.0..=MAX_WEIGHT).contains(&s) {
+                return Err(format!(
+                    "model.sphere_prior = {s} must be in [0, {MAX_WEIGHT:e}]"
+                ));
             }
             g.neiif.sphere_prior = s;
         }
@@ -382,16 +397,21 @@ impl TrainConfig {
                 ));
             }
         }
-        for (key, v) in [
-            ("lr_g", t.lr_g),
-            ("lr_d", t.lr_d),
-            ("r1_gamma", t.r1_gamma),
-            ("ema_kimg", t.ema_kimg),
-            ("ema_rampup", t.ema_rampup),
-        ] {
+        for (key, v) in [("lr_g", t.lr_g), ("lr_d", t.lr_d), ("r1_gamma", t.r1_gamma)] {
+            if !(0.0..=MAX_WEIGHT).contains(&v) {
+                return Err(format!("train.{key} = {v} must be in [0, {MAX_WEIGHT:e}]"));
+            }
+        }
+        for (key, v) in [("ema_kimg", t.ema_kimg), ("ema_rampup", t.ema_rampup)] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("train.{key} = {v} must be finite and >= 0"));
             }
+        }
+        if t.prefetch > MAX_PREFETCH {
+            return Err(format!(
+                "train.prefetch = {} must be in 0..={MAX_PREFETCH}",
+                t.prefetch
+            ));
         }
         for (key, v) in [("beta1", t.beta1), ("beta2", t.beta2)] {
             if !(0.0..1.0).contains(&v) {
@@ -438,8 +458,11 @@ impl TrainConfig {
         if o.log_every == 0 {
             return Err("output.log_every must be at least 1".into());
         }
-        if o.grid_seeds.is_empty() {
-            return Err("output.grid_seeds must name at least one seed".into());
+        if !(1..=MAX_GRID_SEEDS).contains(&o.grid_seeds.len()) {
+            return Err(format!(
+                "output.grid_seeds names {} seeds: give 1 to {MAX_GRID_SEEDS}",
+                o.grid_seeds.len()
+            ));
         }
         let d = &self.data;
         if d.resolution != g.output_resolution || d.volume_resolution != g.volume_resolution {

@@ -128,11 +128,14 @@ impl Default for LossWeights {
 }
 
 impl LossWeights {
-    /// Checks every weight is finite and non-negative, naming the bad one.
+    /// Checks every weight is in `[0, MAX_WEIGHT]` (finite in f32 arithmetic), naming the bad one.
     pub fn validate(&self) -> Result<(), String> {
         for (key, v) in self.named() {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("loss.{key} = {v} must be finite and >= 0"));
+            if !(0.0..=crate::config::MAX_WEIGHT).contains(&v) {
+                return Err(format!(
+                    "loss.{key} = {v} must be in [0, {:e}]",
+                    crate::config::MAX_WEIGHT
+                ));
             }
         }
         Ok(())

@@ -130,6 +130,7 @@ impl Trainer {
                 return Err(TrainError::RunExists {
                     out: options.out.clone(),
                     found: existing,
+                    resumable: !checkpoint::list(&options.out).is_empty(),
                 });
             }
             run_folder::clear(&options.out).map_err(|(path, e)| io_error(&path, e))?;

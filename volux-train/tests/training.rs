@@ -298,7 +298,7 @@ fn a_folder_holding_a_run_is_refused_unless_resumed_or_forced() {
         force: true,
         ..options(&out, false, Some(1))
     };
-    let t = Trainer::new(c, forced).unwrap();
+    let t = Trainer::new(c.clone(), forced).unwrap();
     assert_eq!(t.state().step, 0);
     assert!(checkpoint::list(&out).is_empty());
     assert!(!out.join("grids").exists());
@@ -307,6 +307,22 @@ fn a_folder_holding_a_run_is_refused_unless_resumed_or_forced() {
     assert!(
         out.join("notes.txt").is_file(),
         "files not of a run are kept"
+    );
+    drop(t);
+
+    // What a run that failed before its first checkpoint leaves (its log, a step-0 grid) is
+    // refused too, but --resume is not offered: there is nothing to resume.
+    std::fs::create_dir_all(out.join("grids")).unwrap();
+    std::fs::write(out.join("metrics.jsonl"), "").unwrap();
+    let e = Trainer::new(c, options(&out, false, Some(1)))
+        .err()
+        .expect("refused");
+    let message = e.to_string();
+    assert!(
+        message.contains("nothing to resume")
+            && message.contains("--force")
+            && !message.contains("--resume"),
+        "{message}"
     );
 }
 
@@ -453,8 +469,54 @@ fn killed_runs_leftovers_are_swept_and_non_finite_weights_are_refused() {
         .collect();
     assert!(hidden.is_empty(), "{hidden:?}");
 
-    // NaN weights in the EMA generator: sampling and resuming name the file and the parameter.
+    // A damaged optimiser state: NaN moments (every later step was skipped as non-finite,
+    // no cause named) and a tensor without its parameter id (Burn's loader panicked) are
+    // refused naming the file and the tensor.
     let last = run.join("checkpoint-00000004");
+    let opt = last.join("optimizer_g.bpk");
+    let original = std::fs::read(&opt).unwrap();
+    for (poison_id, problem) in [(false, "NaN"), (true, "no parameter id")] {
+        let read = burn_pack::Bytes::from_bytes_vec(std::fs::read(&opt).unwrap());
+        let tensors = burn_pack::Reader::from_bytes(read)
+            .and_then(burn_pack::Reader::into_tensors)
+            .unwrap();
+        let poisoned: Vec<burn_pack::Tensor> = tensors
+            .into_iter()
+            .map(|t| {
+                let (name, dtype, shape, id, bytes) = t.into_parts().unwrap();
+                let bytes = if poison_id || dtype != burn_pack::DType::F32 {
+                    bytes
+                } else {
+                    let nan: Vec<u8> = bytes
+                        .chunks_exact(4)
+                        .flat_map(|_| f32::NAN.to_le_bytes())
+                        .collect();
+                    burn_pack::Bytes::from_bytes_vec(nan)
+                };
+                let id = if poison_id { None } else { id };
+                burn_pack::Tensor::new(name, dtype, shape, id, bytes)
+            })
+            .collect();
+        std::fs::remove_file(&opt).unwrap();
+        burn_pack::Writer::new(poisoned)
+            .write_to_file(&opt)
+            .unwrap();
+        let e = Trainer::new(c.clone(), options(&run, true, None))
+            .map(drop)
+            .expect_err("resuming refused");
+        let message = e.to_string();
+        assert!(
+            message.contains("optimizer_g.bpk") && message.contains(problem),
+            "{message}"
+        );
+        assert!(matches!(
+            e,
+            TrainError::Checkpoint(checkpoint::CheckpointError::OptimizerState { .. })
+        ));
+    }
+    std::fs::write(&opt, original).unwrap();
+
+    // NaN weights in the EMA generator: sampling and resuming name the file and the parameter.
     let g = volux_train::pretrained::load_for_sampling(&last, BackendKind::Cpu)
         .unwrap()
         .g;

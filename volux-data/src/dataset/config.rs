@@ -206,6 +206,66 @@ impl DataConfig {
         Ok(hi / lo)
     }
 
+    /// Checks every value that needs no file: the resolutions, the background, the source's
+    /// counts, pose deviations, specular weights and layers, and the example cache's sizes.
+    /// Keys are named as in `[data]`.
+    pub fn validate(&self) -> Result<(), DataError> {
+        self.factor()?;
+        let bad = |message: String| Err(DataError::Config(message));
+        if let Some(k) = self
+            .background
+            .iter()
+            .position(|v| !(0.0..=1.0).contains(v))
+        {
+            return bad(format!(
+                "background[{k}] = {} must be in [0, 1]",
+                self.background[k]
+            ));
+        }
+        match &self.source {
+            SourceConfig::Synthetic {
+                identities,
+                supersample,
+                poses,
+            } => {
+                if *identities == 0 {
+                    return bad("source.identities must be at least 1".into());
+                }
+                if !(1..=4).contains(supersample) {
+                    return bad(format!("source.supersample = {supersample} must be 1 to 4"));
+                }
+                poses
+                    .validate()
+                    .or_else(|e| bad(format!("source.poses.{e}")))?;
+            }
+            SourceConfig::Folder {
+                specular_weights,
+                layers,
+                ..
+            } => {
+                folder_content(layers).map_err(DataError::Config)?;
+                if let Some(k) = specular_weights
+                    .iter()
+                    .position(|w| !(w.is_finite() && *w >= 0.0))
+                {
+                    return bad(format!(
+                        "source.specular_weights[{k}] = {} must be finite and >= 0",
+                        specular_weights[k]
+                    ));
+                }
+            }
+        }
+        if let Some(cache) = &self.cache
+            && (cache.examples == 0 || cache.shard_size == 0)
+        {
+            return bad(format!(
+                "cache.examples = {} and cache.shard_size = {} must be at least 1",
+                cache.examples, cache.shard_size
+            ));
+        }
+        Ok(())
+    }
+
     /// Reads the `[data]` table of a config file (other tables belong to other commands),
     /// rejecting unknown keys; relative paths are taken relative to the file's folder.
     pub fn load(path: &Path) -> Result<(DataConfig, String), DataError> {
@@ -236,6 +296,10 @@ impl DataConfig {
             .lighting
             .validate()
             .map_err(|e| in_table("data.lighting", e.into()))?;
+        config.validate().map_err(|e| match e {
+            DataError::Config(message) => in_table("data", message.into()),
+            other => in_table("data", other.into()),
+        })?;
         let base = path.parent().unwrap_or(Path::new(""));
         config.resolve_paths(base);
         // What examples depend on: the table as written, without the example cache's own

@@ -1,5 +1,7 @@
 //! Why a dataset, its lighting or one of its examples cannot be made.
 
+use std::path::PathBuf;
+
 use crate::config_file::ConfigFileError;
 use crate::folder_dataset::FolderError;
 use crate::hdri_collection::HdriError;
@@ -28,10 +30,11 @@ pub enum DataError {
     #[error("{stem}")]
     Sample { stem: String, source: SampleError },
     #[error(
-        "folder image {stem} is {width}x{height}: it must be square, {side} pixels or a multiple of it"
+        "{}: the photo is {width}x{height}: a folder image must be square, {side} pixels or a multiple of it",
+        path.display()
     )]
     FolderSize {
-        stem: String,
+        path: PathBuf,
         width: usize,
         height: usize,
         side: usize,

@@ -95,6 +95,33 @@ fn config_files_name_themselves_in_errors_and_resolve_relative_paths() {
     write("[data.lighting]\nskys = 3\n");
     let err = chain(&DataConfig::load(&file).unwrap_err());
     assert!(err.contains("run.toml") && err.contains("skys"), "{err}");
+    // Values out of range are named with the file when it is read (they were found only
+    // when the dataset was opened, or the cache built, without the file).
+    for (text, says) in [
+        (
+            "[data.source]\nkind = \"synthetic\"\nidentities = 0\n",
+            "source.identities must be at least 1",
+        ),
+        (
+            "[data]\nbackground = [0.0, 2.0, 0.0]\n",
+            "background[1] = 2",
+        ),
+        (
+            "[data.cache]\ndir = \"c\"\nexamples = 0\n",
+            "cache.examples = 0 and cache.shard_size = 256 must be at least 1",
+        ),
+        (
+            "[data.source]\nkind = \"folder\"\npath = \"f\"\nspecular_weights = [0.0, -1.0, 0.0, 0.0]\n",
+            "source.specular_weights[1] = -1",
+        ),
+    ] {
+        write(text);
+        let err = chain(&DataConfig::load(&file).unwrap_err());
+        assert!(
+            err.contains("run.toml: [data]") && err.contains(says),
+            "{err}"
+        );
+    }
     write("[model]\n");
     assert!(
         DataConfig::load(&file)
@@ -401,6 +428,18 @@ fn a_folder_of_photos_alone_makes_examples_of_the_photo_layer_only() {
     assert_eq!(seen, [true, true], "both photos drawn");
     let batch = data.batch(0, 2).unwrap();
     assert_eq!(batch.provided(), data.provided());
+
+    // A photo whose side is not a multiple of the resolution is named by its file (the error
+    // gave the stem alone).
+    let mut odd = config.clone();
+    (odd.resolution, odd.volume_resolution) = (12, 4);
+    let e = chain(&Dataset::new(&odd, bank()).unwrap().example(0).unwrap_err());
+    assert!(
+        e.contains(&root.join("photos").display().to_string())
+            && e.contains(".png: the photo is 16x16")
+            && e.contains("12 pixels or a multiple"),
+        "{e}"
+    );
 }
 
 #[test]

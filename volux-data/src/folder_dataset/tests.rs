@@ -736,6 +736,14 @@ fn samples_without_foreground_or_usable_normals_are_errors_naming_the_file() {
     }
     io::save_exr(&root.join("normals/a.exr"), W, H, &noisy).unwrap();
     assert!(ds().load(0).is_ok());
+    // A grey PNG (white: every normal (1, 1, 1)) faces the camera but is no normal map.
+    fs::remove_file(root.join("normals/a.exr")).unwrap();
+    io::save_png(&root.join("normals/a.png"), W, H, &vec![[255u8; 3]; W * H]).unwrap();
+    let e = ds().load(0).unwrap_err().to_string();
+    assert!(
+        e.contains("normals/a.png") && e.contains("equal x, y and z") && e.contains("100%"),
+        "{e}"
+    );
 }
 
 #[test]

@@ -141,6 +141,51 @@ fn bad_configs_name_the_file_and_the_key() {
             TINY.replace("\"small\"", "\"small\"\nstratified = 0"),
             "model.stratified = 0",
         ),
+        // Values that overflow f32 (every step was skipped as NaN, no cause named), a
+        // prefetch that aborted on allocation, and poses that turn the camera over.
+        (
+            TINY.replace("\"small\"", "\"small\"\nsphere_prior = 1e308"),
+            "model.sphere_prior = 1000",
+        ),
+        (
+            TINY.replace("batch = 4", "r1_gamma = 1e308"),
+            "train.r1_gamma = 1000",
+        ),
+        (
+            TINY.replace("batch = 4", "lr_d = 1e308"),
+            "train.lr_d = 1000",
+        ),
+        (
+            format!("{TINY}\n[loss]\nalbedo = 1e308\n"),
+            "loss.albedo = 1000",
+        ),
+        (
+            format!(
+                "{TINY}\n[output]\ngrid_seeds = [{}]\n",
+                (0..65)
+                    .map(|s| s.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+            "output.grid_seeds names 65 seeds: give 1 to 64",
+        ),
+        (
+            TINY.replace("batch = 4", "prefetch = 1000000000000"),
+            "train.prefetch = 1000000000000 must be in 0..=16",
+        ),
+        (
+            TINY.replace(
+                "batch = 4",
+                "batch = 4\n[train.pose_prior]\npitch_sd = 1e308",
+            ),
+            "train.pose_prior.pitch_mean = 0 and pitch_sd = 1000",
+        ),
+        (
+            format!(
+                "{TINY}\n[data.source]\nkind = \"synthetic\"\n[data.source.poses]\npitch_mean = 1.5\n"
+            ),
+            "source.poses.pitch_mean = 1.5",
+        ),
     ];
     for (text, key) in cases {
         let e = load(&text).expect_err(key);

@@ -24,11 +24,21 @@ pub enum TrainError {
     #[error(transparent)]
     Examples(#[from] ExamplesError),
     #[error(
-        "{} already holds a run ({}): continue it with --resume, start afresh with --force (deletes that run), or choose another --out",
+        "{} already holds a run ({}): {}",
         out.display(),
-        found.iter().map(|p| p.file_name().map_or(String::new(), |n| n.to_string_lossy().into_owned())).collect::<Vec<_>>().join(", ")
+        found.iter().map(|p| p.file_name().map_or(String::new(), |n| n.to_string_lossy().into_owned())).collect::<Vec<_>>().join(", "),
+        if *resumable {
+            "continue it with --resume, start afresh with --force (deletes that run), or choose another --out"
+        } else {
+            "it stopped before its first checkpoint, so there is nothing to resume; start afresh with --force (deletes what it left) or choose another --out"
+        }
     )]
-    RunExists { out: PathBuf, found: Vec<PathBuf> },
+    RunExists {
+        out: PathBuf,
+        found: Vec<PathBuf>,
+        /// Whether it holds a complete checkpoint `--resume` can continue.
+        resumable: bool,
+    },
     #[error("the batch loader has stopped after an earlier error")]
     LoaderStopped,
     #[error("lighting a batch")]
