@@ -7,6 +7,7 @@ use anyhow::{Context, bail};
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use volux_data::hdri_collection::BUILTIN_HDRIS;
+use volux_envmap::lobe::LobePlan;
 use volux_envmap::preconvolve::{
     DEFAULT_TAPER, DEFAULT_TOLERANCE, Progress, preconvolve_with_progress,
 };
@@ -158,7 +159,7 @@ fn preconvolve(args: PreconvolveArgs) -> anyhow::Result<()> {
     };
     options.validate()?;
     let bar = progress_bar(
-        map.width() * map.height() >= 2048 * 1024,
+        slow_preconvolution(map.width() * map.height(), &options.plans()),
         options.exponents.len() + 1,
     );
     let start = Instant::now();
@@ -194,6 +195,18 @@ fn preconvolve(args: PreconvolveArgs) -> anyhow::Result<()> {
         println!("wrote {}", path.display());
     }
     Ok(())
+}
+
+/// Whether a preconvolution takes long enough for a progress bar (seconds or more): a large
+/// input map, or a fine tolerance, whose band limits and light maps grow (at `--tolerance
+/// 1e-5` the n=64 map is far larger than its input and took minutes with nothing printed).
+fn slow_preconvolution(input_texels: usize, plans: &[LobePlan]) -> bool {
+    const SLOW_TEXELS: usize = 2048 * 1024;
+    const SLOW_BAND_LIMIT: usize = 256;
+    input_texels >= SLOW_TEXELS
+        || plans
+            .iter()
+            .any(|p| 2 * p.height * p.height >= SLOW_TEXELS || p.band_limit >= SLOW_BAND_LIMIT)
 }
 
 pub(crate) fn progress_bar(show: bool, steps: usize) -> ProgressBar {
@@ -280,4 +293,24 @@ fn bench(args: BenchArgs) -> anyhow::Result<()> {
         std::fs::write(&out, &text).with_context(|| format!("writing {}", out.display()))?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fine_tolerances_and_large_maps_get_a_progress_bar() {
+        let plans = |tolerance: f64| {
+            PreconvolveOptions {
+                tolerance,
+                ..PreconvolveOptions::default()
+            }
+            .plans()
+        };
+        // The default tolerance on a small map is quick; a large map or a fine tolerance is not.
+        assert!(!slow_preconvolution(256 * 128, &plans(DEFAULT_TOLERANCE)));
+        assert!(slow_preconvolution(4096 * 2048, &plans(DEFAULT_TOLERANCE)));
+        assert!(slow_preconvolution(256 * 128, &plans(1e-5)));
+    }
 }

@@ -133,6 +133,18 @@ pub enum CacheError {
     },
     #[error("cache spec: {0}")]
     Spec(String),
+    #[error(
+        "{}: the cache's {examples} examples need {:.1} GiB more and the disk has {:.1} GiB free; lower [data.cache] examples or free space",
+        dir.display(),
+        *needed as f64 / GIB,
+        *available as f64 / GIB
+    )]
+    NoSpace {
+        dir: PathBuf,
+        examples: u64,
+        needed: u128,
+        available: u128,
+    },
     #[error("example {index} is outside the cache's {len} examples")]
     OutOfRange { index: u64, len: u64 },
     #[error(transparent)]
@@ -248,6 +260,21 @@ fn write_manifest(dir: &Path, manifest: &Manifest) -> Result<(), CacheError> {
     write_atomically(&dir.join(MANIFEST), text.as_bytes())
 }
 
+const GIB: f64 = (1u64 << 30) as f64;
+
+/// Bytes free to an unprivileged writer on the file system holding `dir`, if the OS says.
+fn free_bytes(dir: &Path) -> Option<u128> {
+    use std::os::unix::ffi::OsStrExt;
+    let path = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
+    let mut stat = std::mem::MaybeUninit::<libc::statvfs>::uninit();
+    // SAFETY: `path` is a NUL-terminated string and `stat` is writable storage for the
+    // result, read only when the call succeeds.
+    let ok = unsafe { libc::statvfs(path.as_ptr(), stat.as_mut_ptr()) } == 0;
+    // SAFETY: statvfs filled `stat` when it returned 0.
+    let stat = ok.then(|| unsafe { stat.assume_init() })?;
+    Some(u128::from(stat.f_bavail) * u128::from(stat.f_frsize))
+}
+
 fn file_sha256(path: &Path) -> Result<String, CacheError> {
     let bytes = fs::read(path).map_err(io_error(path))?;
     Ok(Digest::of(&bytes).to_hex())
@@ -308,6 +335,22 @@ pub fn build(
     }
     let kept = manifest.shards.len();
     let floats = example_floats(side, factor, &provided);
+    // Refuse a build the disk cannot hold before writing any of it (it would run until the
+    // disk is full, shard by shard).
+    let shards_left = u128::from(shards) - kept as u128;
+    if shards_left > 0 {
+        let kept_examples: u128 = manifest.shards.iter().map(|e| e.examples as u128).sum();
+        let to_build = u128::from(spec.examples) - kept_examples;
+        let needed = shards_left * HEADER_BYTES as u128 + to_build * floats as u128 * 4;
+        if let Some(available) = free_bytes(dir).filter(|free| needed > *free) {
+            return Err(CacheError::NoSpace {
+                dir: dir.to_path_buf(),
+                examples: spec.examples,
+                needed,
+                available,
+            });
+        }
+    }
     let mut built = 0;
     for s in 0..shards {
         if manifest.shards.iter().any(|e| e.index == s) {

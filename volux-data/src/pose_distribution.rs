@@ -54,7 +54,7 @@ impl PoseDistribution {
         for (name, v) in fields {
             if !v.is_finite() || (name.ends_with("_sd") && v < 0.0) {
                 return Err(format!(
-                    "{name} = {v} must be finite{}",
+                    "{name} = {v:?} must be finite{}",
                     if name.ends_with("_sd") {
                         " and >= 0"
                     } else {
@@ -66,14 +66,14 @@ impl PoseDistribution {
         let yaw_reach = self.yaw_mean.abs() + TRUNCATION * self.yaw_sd;
         if yaw_reach > MAX_YAW {
             return Err(format!(
-                "yaw_mean = {} and yaw_sd = {} draw yaws up to {yaw_reach:.4} radians ({TRUNCATION} sd): every draw must lie within [-2 pi, 2 pi]",
+                "yaw_mean = {:?} and yaw_sd = {:?} draw yaws up to {yaw_reach:.4e} radians ({TRUNCATION} sd): every draw must lie within [-2 pi, 2 pi]",
                 self.yaw_mean, self.yaw_sd
             ));
         }
         let pitch_reach = self.pitch_mean.abs() + TRUNCATION * self.pitch_sd;
         if pitch_reach >= std::f64::consts::FRAC_PI_2 {
             return Err(format!(
-                "pitch_mean = {} and pitch_sd = {} draw pitches up to {pitch_reach:.4} radians ({TRUNCATION} sd): every draw must lie strictly between -pi/2 and pi/2",
+                "pitch_mean = {:?} and pitch_sd = {:?} draw pitches up to {pitch_reach:.4e} radians ({TRUNCATION} sd): every draw must lie strictly between -pi/2 and pi/2",
                 self.pitch_mean, self.pitch_sd
             ));
         }
@@ -134,7 +134,7 @@ mod tests {
                     pitch_sd: 1e308,
                     ..dist
                 },
-                "pitch_sd = 1000",
+                "pitch_sd = 1e308 draw",
             ),
             (
                 PoseDistribution {
@@ -148,7 +148,7 @@ mod tests {
                     yaw_mean: 1e300,
                     ..dist
                 },
-                "yaw_mean = 1000",
+                "yaw_mean = 1e300 and",
             ),
         ] {
             let e = bad.validate().unwrap_err();

@@ -150,14 +150,14 @@ impl ModelConfig {
         if let Some(s) = self.sphere_prior {
             if !(0.0..=MAX_WEIGHT).contains(&s) {
                 return Err(format!(
-                    "model.sphere_prior = {s} must be in [0, {MAX_WEIGHT:e}]"
+                    "model.sphere_prior = {s:?} must be in [0, {MAX_WEIGHT:e}]"
                 ));
             }
             g.neiif.sphere_prior = s;
         }
         if let Some(r) = self.sphere_radius {
             if !(r.is_finite() && r > 0.0 && r < 1.0) {
-                return Err(format!("model.sphere_radius = {r} must be in (0, 1)"));
+                return Err(format!("model.sphere_radius = {r:?} must be in (0, 1)"));
             }
             g.neiif.sphere_radius = r;
         }
@@ -399,12 +399,14 @@ impl TrainConfig {
         }
         for (key, v) in [("lr_g", t.lr_g), ("lr_d", t.lr_d), ("r1_gamma", t.r1_gamma)] {
             if !(0.0..=MAX_WEIGHT).contains(&v) {
-                return Err(format!("train.{key} = {v} must be in [0, {MAX_WEIGHT:e}]"));
+                return Err(format!(
+                    "train.{key} = {v:?} must be in [0, {MAX_WEIGHT:e}]"
+                ));
             }
         }
         for (key, v) in [("ema_kimg", t.ema_kimg), ("ema_rampup", t.ema_rampup)] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("train.{key} = {v} must be finite and >= 0"));
+                return Err(format!("train.{key} = {v:?} must be finite and >= 0"));
             }
         }
         if t.prefetch > MAX_PREFETCH {
@@ -415,7 +417,7 @@ impl TrainConfig {
         }
         for (key, v) in [("beta1", t.beta1), ("beta2", t.beta2)] {
             if !(0.0..1.0).contains(&v) {
-                return Err(format!("train.{key} = {v} must be in [0, 1)"));
+                return Err(format!("train.{key} = {v:?} must be in [0, 1)"));
             }
         }
         t.pose_prior
@@ -443,7 +445,7 @@ impl TrainConfig {
             ("eval_kimg", o.eval_kimg),
         ] {
             if !(v.is_finite() && v >= 0.0) {
-                return Err(format!("output.{key} = {v} must be finite and >= 0"));
+                return Err(format!("output.{key} = {v:?} must be finite and >= 0"));
             }
         }
         if !(2..=4096).contains(&o.eval_samples) {

@@ -133,7 +133,7 @@ impl LossWeights {
         for (key, v) in self.named() {
             if !(0.0..=crate::config::MAX_WEIGHT).contains(&v) {
                 return Err(format!(
-                    "loss.{key} = {v} must be in [0, {:e}]",
+                    "loss.{key} = {v:?} must be in [0, {:e}]",
                     crate::config::MAX_WEIGHT
                 ));
             }

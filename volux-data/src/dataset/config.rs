@@ -218,7 +218,7 @@ impl DataConfig {
             .position(|v| !(0.0..=1.0).contains(v))
         {
             return bad(format!(
-                "background[{k}] = {} must be in [0, 1]",
+                "background[{k}] = {:?} must be in [0, 1]",
                 self.background[k]
             ));
         }
@@ -249,7 +249,7 @@ impl DataConfig {
                     .position(|w| !(w.is_finite() && *w >= 0.0))
                 {
                     return bad(format!(
-                        "source.specular_weights[{k}] = {} must be finite and >= 0",
+                        "source.specular_weights[{k}] = {:?} must be finite and >= 0",
                         specular_weights[k]
                     ));
                 }

@@ -172,3 +172,28 @@ fn unfinished_or_damaged_caches_are_refused_with_the_reason() {
     );
     assert_ne!(fingerprint(&[b"a", b"bc"]), fingerprint(&[b"ab", b"c"]));
 }
+
+#[test]
+fn a_cache_the_disk_cannot_hold_is_refused_before_anything_is_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dataset(3);
+    // 10^15 examples of 8x8 are petabytes: more than any disk here holds.
+    let spec = CacheSpec {
+        examples: 1_000_000_000_000_000,
+        shard_size: 256,
+    };
+    let e = build(dir.path(), &data, "fp", spec, &|_, _| {}).unwrap_err();
+    assert!(matches!(e, CacheError::NoSpace { .. }), "{e:?}");
+    let message = e.to_string();
+    assert!(
+        message.contains(&dir.path().display().to_string())
+            && message.contains("GiB free")
+            && message.contains("[data.cache] examples"),
+        "{message}"
+    );
+    assert_eq!(
+        fs::read_dir(dir.path()).unwrap().count(),
+        0,
+        "nothing written"
+    );
+}

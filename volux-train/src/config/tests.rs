@@ -145,19 +145,19 @@ fn bad_configs_name_the_file_and_the_key() {
         // prefetch that aborted on allocation, and poses that turn the camera over.
         (
             TINY.replace("\"small\"", "\"small\"\nsphere_prior = 1e308"),
-            "model.sphere_prior = 1000",
+            "model.sphere_prior = 1e308 must",
         ),
         (
             TINY.replace("batch = 4", "r1_gamma = 1e308"),
-            "train.r1_gamma = 1000",
+            "train.r1_gamma = 1e308 must",
         ),
         (
             TINY.replace("batch = 4", "lr_d = 1e308"),
-            "train.lr_d = 1000",
+            "train.lr_d = 1e308 must",
         ),
         (
             format!("{TINY}\n[loss]\nalbedo = 1e308\n"),
-            "loss.albedo = 1000",
+            "loss.albedo = 1e308 must",
         ),
         (
             format!(
@@ -178,7 +178,7 @@ fn bad_configs_name_the_file_and_the_key() {
                 "batch = 4",
                 "batch = 4\n[train.pose_prior]\npitch_sd = 1e308",
             ),
-            "train.pose_prior.pitch_mean = 0 and pitch_sd = 1000",
+            "train.pose_prior.pitch_mean = 0.0 and pitch_sd = 1e308 draw",
         ),
         (
             format!(
