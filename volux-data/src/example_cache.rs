@@ -142,8 +142,8 @@ pub enum CacheError {
     NoSpace {
         dir: PathBuf,
         examples: u64,
-        needed: u128,
-        available: u128,
+        needed: u64,
+        available: u64,
     },
     #[error("example {index} is outside the cache's {len} examples")]
     OutOfRange { index: u64, len: u64 },
@@ -346,8 +346,8 @@ pub fn build(
             return Err(CacheError::NoSpace {
                 dir: dir.to_path_buf(),
                 examples: spec.examples,
-                needed,
-                available,
+                needed: u64::try_from(needed).unwrap_or(u64::MAX),
+                available: u64::try_from(available).unwrap_or(u64::MAX),
             });
         }
     }
