@@ -210,36 +210,47 @@ pub(super) unsafe fn matmul(
     }
 }
 
-/// Runs `image` on each image's output and input (`(values, per image)` of each), the images
-/// in parallel or one after another.
-fn for_each_image<T: Send>(
-    (out, out_len): (&mut [T], usize),
+/// The batch's outputs, `out_len` per image, from its inputs, `in_len` per image: `image`
+/// writes each image's output whole from its input, with the parallelism its products get
+/// (the images in parallel on one thread each, or one after another on every thread).
+///
+/// # Safety
+/// `image` must initialise every element of the output block it is given.
+unsafe fn map_images(
+    batch: usize,
     (input, in_len): (&[f32], usize),
-    parallel: bool,
-    image: impl Fn((&mut [T], &[f32])) + Send + Sync,
-) {
-    if parallel {
-        out.par_chunks_mut(out_len)
-            .zip(input.par_chunks(in_len))
-            .for_each(image);
-    } else {
-        out.chunks_mut(out_len)
-            .zip(input.chunks(in_len))
-            .for_each(image);
+    out_len: usize,
+    image: impl Fn(&mut [MaybeUninit<f32>], &[f32], gemm::Parallelism) + Send + Sync,
+) -> Vec<f32> {
+    let len = batch * out_len;
+    if len == 0 {
+        return Vec::new();
     }
+    let parallel = images_in_parallel(batch);
+    let p = gemm_parallelism(parallel);
+    let pair = |(out, x): (&mut [MaybeUninit<f32>], &[f32])| image(out, x, p);
+    let fill = |out: &mut [MaybeUninit<f32>]| {
+        if parallel {
+            out.par_chunks_mut(out_len)
+                .zip(input.par_chunks(in_len))
+                .for_each(pair);
+        } else {
+            out.chunks_mut(out_len)
+                .zip(input.chunks(in_len))
+                .for_each(pair);
+        }
+    };
+    // SAFETY: the `batch` output blocks pair up with the `batch` input blocks (a zero
+    // `in_len` panics in `chunks` before any output is used), and the caller's `image`
+    // writes each block whole.
+    unsafe { written_by(len, fill) }
 }
 
 /// `y = conv(x, W)` for every image: `[batch, o, ho, wo]`.
 pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
-    let len = s.batch * s.y_len();
-    if len == 0 {
-        return Vec::new();
-    }
-    let parallel = images_in_parallel(s.batch);
-    let p = gemm_parallelism(parallel);
     let strategy = Strategy::of(s);
     let layout = Phases::new(s);
-    let image = |(y_b, x_b): (&mut [MaybeUninit<f32>], &[f32])| match strategy {
+    let image = |y_b: &mut [MaybeUninit<f32>], x_b: &[f32], p| match strategy {
         // SAFETY: `weight` is `[o, c]`, `x_b` `[c, h w]`, `y_b` `[o, h w]`, written whole.
         Strategy::Pointwise => unsafe {
             let n = s.ho * s.wo;
@@ -260,24 +271,14 @@ pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
         }),
     };
     // SAFETY: every strategy writes each image's `[o, ho, wo]` block whole.
-    unsafe {
-        written_by(len, |y| {
-            for_each_image((y, s.y_len()), (x, s.x_len()), parallel, image)
-        })
-    }
+    unsafe { map_images(s.batch, (x, s.x_len()), s.y_len(), image) }
 }
 
 /// `x = conv^T(y, W)` for every image: `[batch, c, h, w]`.
 pub(super) fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
-    let len = s.batch * s.x_len();
-    if len == 0 {
-        return Vec::new();
-    }
-    let parallel = images_in_parallel(s.batch);
-    let p = gemm_parallelism(parallel);
     let strategy = Strategy::of(s);
     let layout = Phases::new(s);
-    let image = |(x_b, y_b): (&mut [MaybeUninit<f32>], &[f32])| match strategy {
+    let image = |x_b: &mut [MaybeUninit<f32>], y_b: &[f32], p| match strategy {
         // SAFETY: `W^T` is `[c, o]`, `y_b` `[o, h w]`, `x_b` `[c, h w]`, written whole.
         Strategy::Pointwise => unsafe {
             let n = s.h * s.w;
@@ -298,11 +299,7 @@ pub(super) fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
         }),
     };
     // SAFETY: every strategy writes each image's `[c, h, w]` block whole.
-    unsafe {
-        written_by(len, |x| {
-            for_each_image((x, s.x_len()), (y, s.y_len()), parallel, image)
-        })
-    }
+    unsafe { map_images(s.batch, (y, s.y_len()), s.x_len(), image) }
 }
 
 /// `dW = sum_b g_b col(x_b)^T`, `[o, c, k, k]`, for inputs `x` and output gradients `g`:
