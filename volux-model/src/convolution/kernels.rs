@@ -54,15 +54,12 @@ impl Strategy {
         }
     }
 
-    /// Scratch elements one image needs.
-    fn scratch_len(self, s: Shape) -> usize {
+    /// Scratch elements one image needs (`layout`: the shape's polyphase layout).
+    fn scratch_len(self, s: Shape, layout: &Phases) -> usize {
         match self {
             Strategy::Pointwise => 0,
             Strategy::Patches => patches::scratch_len(s),
-            Strategy::Shifted => {
-                let layout = Phases::new(s);
-                layout.len() + s.o * layout.columns()
-            }
+            Strategy::Shifted => layout.len() + s.o * layout.columns(),
         }
     }
 }
@@ -263,10 +260,10 @@ pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
                 p,
             )
         },
-        Strategy::Patches => with_scratch(strategy.scratch_len(s), |col| {
+        Strategy::Patches => with_scratch(strategy.scratch_len(s, &layout), |col| {
             patches::forward_image(x_b, weight, s, y_b, col, p)
         }),
-        Strategy::Shifted => with_scratch(strategy.scratch_len(s), |scratch| {
+        Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
             shifted::forward_image(x_b, weight, &layout, y_b, scratch, p)
         }),
     };
@@ -291,10 +288,10 @@ pub(super) fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
                 p,
             )
         },
-        Strategy::Patches => with_scratch(strategy.scratch_len(s), |col| {
+        Strategy::Patches => with_scratch(strategy.scratch_len(s, &layout), |col| {
             patches::adjoint_image(y_b, weight, s, x_b, col, p)
         }),
-        Strategy::Shifted => with_scratch(strategy.scratch_len(s), |scratch| {
+        Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
             shifted::adjoint_image(y_b, weight, &layout, x_b, scratch, p)
         }),
     };
@@ -337,10 +334,10 @@ pub(super) fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
                         p,
                     )
                 },
-                Strategy::Patches => with_scratch(strategy.scratch_len(s), |col| {
+                Strategy::Patches => with_scratch(strategy.scratch_len(s, &layout), |col| {
                     patches::weight_gradient_image(x_b, g_b, s, &mut dw_t, col, p)
                 }),
-                Strategy::Shifted => with_scratch(strategy.scratch_len(s), |scratch| {
+                Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
                     shifted::weight_gradient_image(x_b, g_b, &layout, &mut dw_t, scratch, p)
                 }),
             }

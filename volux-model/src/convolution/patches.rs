@@ -95,6 +95,7 @@ fn col2im(col: &[f32], s: Shape, x: &mut [f32]) {
         }
     }
 }
+
 /// Elements of one image's patch matrix, the scratch the functions below need.
 pub(super) fn scratch_len(s: Shape) -> usize {
     s.patch() * s.ho * s.wo
