@@ -311,6 +311,7 @@ fn apply(
 mod kernels;
 mod patches;
 mod shifted;
+mod winograd;
 
 #[cfg(test)]
 mod tests;

@@ -161,16 +161,20 @@ fn detected(feature: &str) -> bool {
     }
 }
 
-/// Runs `kernel(args: $args_ty) -> Vec<f32>` compiled for the best instruction set of
-/// [`simd`]: the same source, vectorised sixteen, eight or four lanes wide.
+/// Runs `kernel(args: $args_ty) -> Vec<f32>` (or `-> $ret`) compiled for the best
+/// instruction set of [`simd`]: the same source, vectorised sixteen, eight or four lanes
+/// wide.
 macro_rules! dispatch_simd {
-    ($kernel:ident, $args:expr, $args_ty:ty) => {{
+    ($kernel:ident, $args:expr, $args_ty:ty) => {
+        $crate::flex_extension::dispatch_simd!($kernel, $args, $args_ty => Vec<f32>)
+    };
+    ($kernel:ident, $args:expr, $args_ty:ty => $ret:ty) => {{
         let args: $args_ty = $args;
         match $crate::flex_extension::simd() {
             #[cfg(target_arch = "x86_64")]
             $crate::flex_extension::Simd::Avx512 => {
                 #[target_feature(enable = "avx512f,avx512dq,avx512vl,avx512bw,avx2,fma")]
-                unsafe fn widest(args: $args_ty) -> Vec<f32> {
+                unsafe fn widest(args: $args_ty) -> $ret {
                     $kernel(args)
                 }
                 // SAFETY: `simd` found the features `widest` is compiled for.
@@ -179,7 +183,7 @@ macro_rules! dispatch_simd {
             #[cfg(target_arch = "x86_64")]
             $crate::flex_extension::Simd::Avx2 => {
                 #[target_feature(enable = "avx2,fma")]
-                unsafe fn wide(args: $args_ty) -> Vec<f32> {
+                unsafe fn wide(args: $args_ty) -> $ret {
                     $kernel(args)
                 }
                 // SAFETY: `simd` found the features `wide` is compiled for.

@@ -3,14 +3,15 @@
 //! with each product on every thread; each image by the strategy its shape runs fastest
 //! with ([`Strategy`]), in the thread's scratch buffer, into outputs that are not zeroed first.
 
+use std::cell::Cell;
 use std::mem::MaybeUninit;
-use std::sync::atomic::{AtomicU8, Ordering};
 
 use rayon::prelude::*;
 
 use super::Shape;
 use super::patches;
 use super::shifted::{self, Phases};
+use super::winograd::{self, Tiles};
 use crate::flex_extension::{with_scratch, written_by};
 
 /// How one image's products are taken.
@@ -27,24 +28,45 @@ pub(super) enum Strategy {
     /// 7.5 ms at 32^2 and 64, 4.2 against 5.2-5.4 ms for the stride-2 layer on 65^2 planes,
     /// but 5.9-6.0 against 5.5 ms at 16^2 and 128 and 1.7 against 1.5 ms at 8^2.
     Shifted,
+    /// Winograd's `F(2x2, 3x3)` ([`winograd`]): 3x3 kernels of stride 1, 4/9 of the
+    /// multiply-adds of the direct products.
+    Winograd,
 }
 
 /// Output positions per image from which [`Strategy::Shifted`] is taken.
 const SHIFTED_FROM: usize = 512;
 
-/// A strategy forced on every convolution (0: none), for tests that run each strategy on
-/// every shape ([`forced::each`]).
-static FORCED: AtomicU8 = AtomicU8::new(0);
+/// Output positions per image and channels (in and out) from which [`Strategy::Winograd`]
+/// is taken where it applies. Alone on one core (batch 8, 2026-12-07, the machine shared
+/// with a training run) it took 5.1-5.4 against 6.6-7.0 ms forward at 32^2 and 64
+/// channels, 4.9-5.2 against 6.5-7.8 ms at 16^2 and 128; but 2.1 against 1.8 ms at 8^2
+/// (4 tiles a row: products of 16 columns), and at 64^2 with 32 channels its transforms,
+/// which cost `(c + o) / (2 c o)` of the products and fill 2 MiB of tiles per image, left
+/// forward + backward at 28-35 against 23-31 ms.
+const WINOGRAD_FROM: usize = 256;
+const WINOGRAD_CHANNELS: usize = 64;
+
+thread_local! {
+    /// A strategy forced on the convolutions this thread starts (0: none), for tests that
+    /// run each strategy on every shape ([`forced::each`]). Per thread, so that the other
+    /// tests running meanwhile keep their shapes' own choices (and bit-for-bit results).
+    static FORCED: Cell<u8> = const { Cell::new(0) };
+}
 
 impl Strategy {
     fn of(s: Shape) -> Self {
         if s.pointwise() {
             return Strategy::Pointwise;
         }
-        match FORCED.load(Ordering::Relaxed) {
+        match FORCED.get() {
             1 => return Strategy::Patches,
             2 => return Strategy::Shifted,
+            3 if winograd::applies(s) => return Strategy::Winograd,
             _ => {}
+        }
+        if winograd::applies(s) && s.ho * s.wo >= WINOGRAD_FROM && s.c.min(s.o) >= WINOGRAD_CHANNELS
+        {
+            return Strategy::Winograd;
         }
         // A strided 1x1 kernel reads a quarter of the input or less: nothing to reuse.
         if s.k > 1 && s.ho * s.wo >= SHIFTED_FROM {
@@ -54,35 +76,35 @@ impl Strategy {
         }
     }
 
-    /// Scratch elements one image needs (`layout`: the shape's polyphase layout).
+    /// Scratch elements one image of a direct strategy needs (`layout`: the shape's
+    /// polyphase layout; Winograd runs its own batches, [`winograd::forward`]).
     fn scratch_len(self, s: Shape, layout: &Phases) -> usize {
         match self {
-            Strategy::Pointwise => 0,
+            Strategy::Pointwise | Strategy::Winograd => 0,
             Strategy::Patches => patches::scratch_len(s),
             Strategy::Shifted => layout.len() + s.o * layout.columns(),
         }
     }
 }
 
-/// Runs `f` with each non-pointwise strategy forced on every convolution in turn, holding a
-/// lock so that two such tests do not interleave; other tests meanwhile meet correct
-/// convolutions either way.
+/// Runs `f` with each non-pointwise strategy forced on every convolution this thread starts,
+/// in turn (Winograd where it applies, the shape's own choice elsewhere). The strategy is
+/// chosen on the calling thread (the backward pass's too), so the forcing reaches every
+/// convolution `f` runs and no other test's.
 #[cfg(test)]
 pub(super) mod forced {
-    use std::sync::Mutex;
-    use std::sync::atomic::Ordering;
-
     use super::{FORCED, Strategy};
 
-    static LOCK: Mutex<()> = Mutex::new(());
-
     pub(crate) fn each(mut f: impl FnMut(Strategy)) {
-        let _guard = LOCK.lock().unwrap_or_else(|e| e.into_inner());
-        for (code, strategy) in [(1, Strategy::Patches), (2, Strategy::Shifted)] {
-            FORCED.store(code, Ordering::Relaxed);
+        for (code, strategy) in [
+            (1, Strategy::Patches),
+            (2, Strategy::Shifted),
+            (3, Strategy::Winograd),
+        ] {
+            FORCED.set(code);
             f(strategy);
         }
-        FORCED.store(0, Ordering::Relaxed);
+        FORCED.set(0);
     }
 }
 
@@ -247,6 +269,14 @@ unsafe fn map_images(
 pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
     let strategy = Strategy::of(s);
     let layout = Phases::new(s);
+    if strategy == Strategy::Winograd {
+        return winograd::forward(
+            x,
+            &winograd::filters(weight, s, false),
+            &Tiles::forward(s),
+            s.batch,
+        );
+    }
     let image = |y_b: &mut [MaybeUninit<f32>], x_b: &[f32], p| match strategy {
         // SAFETY: `weight` is `[o, c]`, `x_b` `[c, h w]`, `y_b` `[o, h w]`, written whole.
         Strategy::Pointwise => unsafe {
@@ -266,6 +296,7 @@ pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
         Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
             shifted::forward_image(x_b, weight, &layout, y_b, scratch, p)
         }),
+        Strategy::Winograd => unreachable!("taken above"),
     };
     // SAFETY: every strategy writes each image's `[o, ho, wo]` block whole.
     unsafe { map_images(s.batch, (x, s.x_len()), s.y_len(), image) }
@@ -275,6 +306,15 @@ pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
 pub(super) fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
     let strategy = Strategy::of(s);
     let layout = Phases::new(s);
+    if strategy == Strategy::Winograd {
+        // The convolution with the flipped filters.
+        return winograd::forward(
+            y,
+            &winograd::filters(weight, s, true),
+            &Tiles::adjoint(s),
+            s.batch,
+        );
+    }
     let image = |x_b: &mut [MaybeUninit<f32>], y_b: &[f32], p| match strategy {
         // SAFETY: `W^T` is `[c, o]`, `y_b` `[o, h w]`, `x_b` `[c, h w]`, written whole.
         Strategy::Pointwise => unsafe {
@@ -294,22 +334,66 @@ pub(super) fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
         Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
             shifted::adjoint_image(y_b, weight, &layout, x_b, scratch, p)
         }),
+        Strategy::Winograd => unreachable!("taken above"),
     };
     // SAFETY: every strategy writes each image's `[c, h, w]` block whole.
     unsafe { map_images(s.batch, (y, s.y_len()), s.x_len(), image) }
 }
 
 /// `dW = sum_b g_b col(x_b)^T`, `[o, c, k, k]`, for inputs `x` and output gradients `g`:
-/// each worker sums its share of the images into a `[c k k, o]` buffer (the orientation the
-/// products run fast in, see [`patches::weight_gradient_image`]), transposed once at the end.
+/// the direct strategies sum into a `[c k k, o]` buffer (the orientation the products run
+/// fast in, see [`patches::weight_gradient_image`]), transposed once at the end; Winograd
+/// sums in its transformed domain ([`winograd::weight_gradient`]).
 pub(super) fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
     let patch = s.patch();
-    let len = s.o * patch;
+    let strategy = Strategy::of(s);
+    if strategy == Strategy::Winograd {
+        return winograd::weight_gradient(x, g, s);
+    }
+    let layout = Phases::new(s);
+    let sum = sum_over_images((x, g), s, s.o * patch, |acc, x_b, g_b, p| match strategy {
+        // SAFETY: `x_b` is `[c, h w]`, `g_b^T` `[h w, o]`, `acc` `[c, o]`, initialised.
+        Strategy::Pointwise => unsafe {
+            let n = s.h * s.w;
+            matmul(
+                rows_out(acc, s.o),
+                true,
+                (s.c, n, s.o),
+                rows(x_b, n),
+                transposed(g_b, n),
+                p,
+            )
+        },
+        Strategy::Patches => with_scratch(strategy.scratch_len(s, &layout), |col| {
+            patches::weight_gradient_image(x_b, g_b, s, acc, col, p)
+        }),
+        Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
+            shifted::weight_gradient_image(x_b, g_b, &layout, acc, scratch, p)
+        }),
+        Strategy::Winograd => unreachable!("taken above"),
+    });
+    // `[patch, o] -> [o, patch]`.
+    let mut dw = vec![0.0f32; sum.len()];
+    for (r, row) in sum.chunks_exact(s.o).enumerate() {
+        for (o, v) in row.iter().enumerate() {
+            dw[o * patch + r] = *v;
+        }
+    }
+    dw
+}
+
+/// `sum_b image(x_b, g_b)` over the batch (`x`: `[batch, c, h, w]`, `g`: `[batch, o, ho,
+/// wo]`), each call adding onto an accumulator of `len` elements that starts at zero: each
+/// worker takes a share of the images into its own accumulator, and the partial sums are
+/// added at the end.
+fn sum_over_images(
+    (x, g): (&[f32], &[f32]),
+    s: Shape,
+    len: usize,
+    image: impl Fn(&mut [f32], &[f32], &[f32], gemm::Parallelism) + Sync,
+) -> Vec<f32> {
     let parallel = images_in_parallel(s.batch);
     let p = gemm_parallelism(parallel);
-    let strategy = Strategy::of(s);
-    let layout = Phases::new(s);
-    // One partial sum per worker's share of the images.
     let shares = if parallel {
         rayon::current_num_threads().min(s.batch)
     } else {
@@ -317,32 +401,13 @@ pub(super) fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
     };
     let per_share = s.batch.div_ceil(shares.max(1)).max(1);
     let share = |images: std::ops::Range<usize>| -> Vec<f32> {
-        let mut dw_t = vec![0.0f32; len];
+        let mut acc = vec![0.0f32; len];
         for b in images {
             let x_b = &x[b * s.x_len()..(b + 1) * s.x_len()];
             let g_b = &g[b * s.y_len()..(b + 1) * s.y_len()];
-            match strategy {
-                // SAFETY: `x_b` is `[c, h w]`, `g_b^T` `[h w, o]`, `dw_t` `[c, o]`, initialised.
-                Strategy::Pointwise => unsafe {
-                    let n = s.h * s.w;
-                    matmul(
-                        rows_out(&mut dw_t, s.o),
-                        true,
-                        (s.c, n, s.o),
-                        rows(x_b, n),
-                        transposed(g_b, n),
-                        p,
-                    )
-                },
-                Strategy::Patches => with_scratch(strategy.scratch_len(s, &layout), |col| {
-                    patches::weight_gradient_image(x_b, g_b, s, &mut dw_t, col, p)
-                }),
-                Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
-                    shifted::weight_gradient_image(x_b, g_b, &layout, &mut dw_t, scratch, p)
-                }),
-            }
+            image(&mut acc, x_b, g_b, p);
         }
-        dw_t
+        acc
     };
     let ranges: Vec<_> = (0..s.batch)
         .step_by(per_share)
@@ -354,18 +419,11 @@ pub(super) fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
         ranges.into_iter().map(share).collect()
     };
     let mut partials = partials.into_iter();
-    let mut dw_t = partials.next().unwrap_or_else(|| vec![0.0; len]);
+    let mut sum = partials.next().unwrap_or_else(|| vec![0.0; len]);
     for p in partials {
-        for (t, v) in dw_t.iter_mut().zip(p) {
+        for (t, v) in sum.iter_mut().zip(p) {
             *t += v;
         }
     }
-    // `[patch, o] -> [o, patch]`.
-    let mut dw = vec![0.0f32; len];
-    for (r, row) in dw_t.chunks_exact(s.o).enumerate() {
-        for (o, v) in row.iter().enumerate() {
-            dw[o * patch + r] = *v;
-        }
-    }
-    dw
+    sum
 }

@@ -10,7 +10,9 @@ use volux_envmap::random::SplitMix64;
 /// stride 2 on odd planes, 1x1) at reduced width, the batches that run images in
 /// parallel and one by one, and the awkward ones: a 1x1 plane, padding wider than the
 /// kernel, a stride that skips inputs, a strided 1x1 kernel, an even kernel, a stride wider
-/// than the plane (phases that hold no input column), a 5x5 kernel with stride 2.
+/// than the plane (phases that hold no input column), a 5x5 kernel with stride 2, and 3x3
+/// kernels of stride 1 on odd planes (partial Winograd tiles) with padding 1, 0 and 2, and
+/// one image alone (its products on every thread).
 fn cases() -> Vec<([usize; 4], usize, usize, ConvGeometry)> {
     let g = ConvGeometry::new;
     vec![
@@ -26,6 +28,10 @@ fn cases() -> Vec<([usize; 4], usize, usize, ConvGeometry)> {
         ([2, 3, 2, 5], 4, 1, g(3, 0)),
         ([1, 2, 4, 2], 3, 2, g(3, 1)),
         ([1, 2, 7, 6], 3, 5, g(2, 2)),
+        ([3, 4, 7, 5], 5, 3, g(1, 1)),
+        ([2, 3, 6, 9], 4, 3, g(1, 0)),
+        ([2, 3, 5, 4], 2, 3, g(1, 2)),
+        ([1, 3, 5, 6], 4, 3, g(1, 1)),
     ]
 }
 
@@ -238,6 +244,65 @@ fn gradients_match_the_reference_in_both_directions() {
     });
 }
 
+/// `sqrt(sum (got - want)^2 / sum want^2)`.
+fn relative_rms(got: &[f32], want: &[f64]) -> f64 {
+    let (err, norm) = got.iter().zip(want).fold((0.0, 0.0), |(e, n), (g, w)| {
+        (e + (f64::from(*g) - w).powi(2), n + w * w)
+    });
+    (err / norm).sqrt()
+}
+
+/// Winograd's rounding against the direct products' on a discriminator-sized layer (32
+/// channels in and out, 16x16, 3x3 'same'): the relative RMS error of each strategy's forward
+/// and adjoint against the f64 sums. Its transforms add a few roundings per output; the
+/// error stays within a small factor of the direct products' (the measured figures are in
+/// docs/performance.md).
+#[test]
+fn winograd_rounding_stays_near_the_direct_products() {
+    let device = Device::flex();
+    let mut rng = SplitMix64::new(14);
+    let (shape, o, k, g) = ([2, 32, 16, 16], 32, 3, ConvGeometry::new(1, 1));
+    let wshape = [o, shape[1], k, k];
+    let yshape = out_shape(shape, o, k, g);
+    let n = |s: [usize; 4]| s.iter().product::<usize>();
+    let (x, w, y) = (
+        random(&mut rng, n(shape)),
+        random(&mut rng, n(wshape)),
+        random(&mut rng, n(yshape)),
+    );
+    let (want_y, _) = conv2d_f64(&wide(&x), shape, &wide(&w), [o, k], 1, 1);
+    let want_x = adjoint_f64(&wide(&y), shape, &wide(&w), [o, k], g);
+    let mut errors = Vec::new();
+    forced::each(|strategy| {
+        let (xt, wt, yt) = (
+            tensor(&x, shape, &device),
+            tensor(&w, wshape, &device),
+            tensor(&y, yshape, &device),
+        );
+        let forward = to_f32_vec(conv2d(xt, wt.clone(), g));
+        let adjoint = to_f32_vec(conv2d_adjoint(yt, wt, g, [shape[2], shape[3]]));
+        let e = (
+            relative_rms(&forward, &want_y),
+            relative_rms(&adjoint, &want_x),
+        );
+        println!("{strategy:?}: forward {:.2e}, adjoint {:.2e}", e.0, e.1);
+        errors.push((strategy, e));
+    });
+    let direct = errors
+        .iter()
+        .filter(|(s, _)| *s != kernels::Strategy::Winograd)
+        .fold(0.0f64, |m, (_, e)| m.max(e.0).max(e.1));
+    let (_, winograd) = errors
+        .iter()
+        .find(|(s, _)| *s == kernels::Strategy::Winograd)
+        .expect("forced");
+    assert!(direct > 0.0 && direct < 1e-6, "direct products: {direct:e}");
+    assert!(
+        winograd.0 < 4.0 * direct && winograd.1 < 4.0 * direct,
+        "Winograd {winograd:?} against the direct products' {direct:e}"
+    );
+}
+
 #[test]
 fn gradients_match_f64_central_differences() {
     // Each strategy on every shape, whichever the shape would pick.
@@ -246,6 +311,7 @@ fn gradients_match_f64_central_differences() {
         for (shape, o, k, g) in [
             ([2, 2, 5, 4], 3, 3, ConvGeometry::new(2, 1)),
             ([2, 3, 3, 3], 2, 1, ConvGeometry::new(1, 0)),
+            ([2, 2, 5, 4], 3, 3, ConvGeometry::new(1, 1)),
         ] {
             let wshape = [o, shape[1], k, k];
             let yshape = out_shape(shape, o, k, g);
@@ -297,7 +363,7 @@ fn gradients_match_f64_central_differences() {
 #[test]
 fn huge_tiny_zero_and_non_finite_inputs() {
     // Each strategy on every shape, whichever the shape would pick.
-    forced::each(|_| {
+    forced::each(|strategy| {
         let device = Device::flex();
         let g = ConvGeometry::new(1, 1);
         let w = tensor(&[1e-3; 18], [2, 1, 3, 3], &device);
@@ -331,10 +397,28 @@ fn huge_tiny_zero_and_non_finite_inputs() {
         y[0] = f32::NAN;
         let back = to_f32_vec(conv2d_adjoint(
             tensor(&y, [1, 2, 6, 6], &device),
-            w,
+            w.clone(),
             g,
             [6, 6],
         ));
         assert!(back[0].is_nan() && back[35].is_finite());
+        // Inside the plane (input row 2, column 3): the direct products poison the outputs
+        // whose window holds it (rows 1-3, columns 2-4); Winograd, whose transforms mix a
+        // whole 4x4 input tile, every output of the tiles that hold it (rows 0-3, columns
+        // 2-5), and nothing further.
+        let mut x = vec![1.0f32; 36];
+        x[2 * 6 + 3] = f32::NAN;
+        let y = to_f32_vec(conv2d(tensor(&x, [1, 1, 6, 6], &device), w, g));
+        for (i, v) in y[..36].iter().enumerate() {
+            let (r, c) = (i / 6, i % 6);
+            let window = (1..=3).contains(&r) && (2..=4).contains(&c);
+            let tiles = r <= 3 && (2..=5).contains(&c);
+            if strategy == kernels::Strategy::Winograd {
+                assert!(!window || v.is_nan(), "output {i}: {v}");
+                assert!(tiles || v.is_finite(), "output {i}: {v}");
+            } else {
+                assert_eq!(v.is_nan(), window, "{strategy:?}: output {i}: {v}");
+            }
+        }
     });
 }

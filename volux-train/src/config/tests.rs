@@ -199,7 +199,7 @@ fn bad_configs_name_the_file_and_the_key() {
 #[test]
 fn the_resolved_config_fills_in_every_default_and_loads_back_the_same() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
-    let mut configs: Vec<TrainConfig> = ["quickstart.toml", "synthetic64.toml"]
+    let mut configs: Vec<TrainConfig> = ["quickstart.toml", "synthetic2h.toml", "synthetic64.toml"]
         .iter()
         .map(|name| TrainConfig::load(&root.join(name)).unwrap())
         .collect();
