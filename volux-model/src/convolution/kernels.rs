@@ -38,13 +38,13 @@ const SHIFTED_FROM: usize = 512;
 
 /// Output positions per image and channels (in and out) from which [`Strategy::Winograd`]
 /// is taken where it applies. Alone on one core (batch 8, 2026-12-07, the machine shared
-/// with a training run) it took 5.1-5.4 against 6.6-7.0 ms forward at 32^2 and 64
-/// channels, 4.9-5.2 against 6.5-7.8 ms at 16^2 and 128; but 2.1 against 1.8 ms at 8^2
-/// (4 tiles a row: products of 16 columns), and at 64^2 with 32 channels its transforms,
-/// which cost `(c + o) / (2 c o)` of the products and fill 2 MiB of tiles per image, left
-/// forward + backward at 28-35 against 23-31 ms.
+/// with a training run), forward + backward against the direct products: 18.2-19.1 against
+/// 22.9-24.8 ms at 64^2 and 32 channels, 14.2-15.4 against 21.4-22.9 ms at 32^2 and 64,
+/// 14.5-17.2 against 21.5-23.4 ms at 16^2 and 128; but 7.2-7.4 against 5.8 ms at 8^2 (4
+/// tiles a row: short products, and a fifth of their columns are not tiles). Narrower
+/// layers were not measured.
 const WINOGRAD_FROM: usize = 256;
-const WINOGRAD_CHANNELS: usize = 64;
+const WINOGRAD_CHANNELS: usize = 32;
 
 thread_local! {
     /// A strategy forced on the convolutions this thread starts (0: none), for tests that

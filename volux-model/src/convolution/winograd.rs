@@ -11,7 +11,11 @@
 //! columns, `16 T` columns in all where the direct products ([`super::shifted`],
 //! [`super::patches`]) have `9 ho wo`: 4/9 of their multiply-adds. The transforms add and
 //! subtract only (and halve, in `G`); they cost `O((c + o) T)` against the products'
-//! `O(o c T)`.
+//! `O(o c T)`, and they are laid out so that each is arithmetic on runs as long as the image
+//! has tiles ([`Tiles::input_tiles_here`]): written tile by tile, or a row of tiles at a time
+//! (runs of 8-32), they took a third of the layer's time and lost to the direct products at
+//! 64^2 and 32 channels. Each task takes its images one at a time: the tiles of several
+//! images side by side made longer products whose operands no longer stayed in cache.
 //!
 //! The other two products follow from linearity. The adjoint of a stride-1 3x3 convolution
 //! with padding `p` is the convolution of the output with the filters flipped and their
@@ -90,9 +94,12 @@ impl Tiles {
         Self::new(s.o, s.c, [s.ho, s.wo], 2 - s.geometry.pad)
     }
 
-    /// Tiles per image.
-    fn count(&self) -> usize {
-        self.th * self.tw
+    /// Columns of one image's transformed tiles: tile `(i, j)` at `i (tw + 1) + j`, so that
+    /// every input of every tile is a contiguous run of a quarter plane (see
+    /// [`Self::input_tiles_here`]); column `tw` of each row of tiles is not a tile (its
+    /// products are computed and dropped: `1 / tw` more columns).
+    fn columns(&self) -> usize {
+        self.th * (self.tw + 1)
     }
 
     /// [`Self::input_tiles_here`] compiled for the widest vectors the CPU has.
@@ -132,160 +139,147 @@ impl Tiles {
     }
 
     /// `V = B^T d B` of every tile of one image `x_b` (`[cin, h, w]`) into `v`, laid out
-    /// `[16, cin, T]` (tile `t = i tw + j` at column `t`); padding reads as zero.
+    /// `[16, cin, columns]` ([`Self::columns`]); padding reads as zero.
     ///
-    /// One row of tiles at a time, all its tiles at once: the four padded input rows under
-    /// it are split into their even and odd columns, so that column `b` of every tile is a
-    /// contiguous run (`even[j]`, `odd[j]`, `even[j + 1]`, `odd[j + 1]` for `b = 0..4`) and
-    /// the transform is elementwise arithmetic on runs of `tw`.
+    /// Each channel's padded plane is split into its four quarter planes by row and column
+    /// parity, `Q[pr, pc][i, j] = x_pad[2 i + pr, 2 j + pc]`, rows of `tw + 1`. Input `(a, b)`
+    /// of tile `(i, j)` is `x_pad[2 i + a, 2 j + b] = Q[a % 2, b % 2][i + a / 2, j + b / 2]`:
+    /// for all tiles at once, the quarter plane read from offset `(a / 2) (tw + 1) + b / 2`
+    /// in the tiles' own layout. So both halves of the transform are arithmetic on runs of
+    /// every tile of the image.
     #[inline(always)]
     fn input_tiles_here(&self, x_b: &[f32], v: &mut [f32]) {
-        let (t_count, tw) = (self.count(), self.tw);
-        let half = tw + 1;
-        // Rows a = 0..4 of the band, each as its even then its odd columns.
-        let mut band = vec![0.0f32; 8 * half];
-        // B^T d, row a, column b, for every tile of the row.
-        let mut e = vec![0.0f32; 16 * tw];
+        let (l, lane) = (self.columns(), self.tw + 1);
+        // A quarter plane: its rows, and one more element that the last window reads.
+        let q_len = (self.th + 1) * lane + 1;
+        let mut quarters = vec![0.0f32; 4 * q_len];
+        // B^T d for one row a of the transformed tile: columns b = 0..4.
+        let mut e = vec![0.0f32; 4 * l];
         for c in 0..self.cin {
             let plane = &x_b[c * self.h * self.w..(c + 1) * self.h * self.w];
-            for ti in 0..self.th {
-                for (a, row) in band.chunks_exact_mut(2 * half).enumerate() {
-                    row.fill(0.0);
-                    let Some(y) = (2 * ti + a).checked_sub(self.pad).filter(|y| *y < self.h) else {
-                        continue;
-                    };
-                    let (even, odd) = row.split_at_mut(half);
-                    // Padded column q holds input column q - pad.
-                    let src = &plane[y * self.w..(y + 1) * self.w];
-                    let src = &src[..src.len().min(2 * half - self.pad)];
-                    let k0 = self.pad / 2;
-                    if self.pad.is_multiple_of(2) {
-                        deinterleave(src, &mut even[k0..], &mut odd[k0..]);
-                    } else {
-                        deinterleave(src, &mut odd[k0..], &mut even[k0 + 1..]);
+            quarters.fill(0.0);
+            for (y, src) in plane.chunks_exact(self.w).enumerate() {
+                let r = y + self.pad;
+                if r >= 2 * (self.th + 1) {
+                    break;
+                }
+                let row = (r / 2) * lane;
+                let (even, odd) = quarters[(r % 2) * 2 * q_len..][..2 * q_len].split_at_mut(q_len);
+                // Padded column q holds input column q - pad; columns past 2 lane are read by
+                // no tile.
+                let src = &src[..src.len().min(2 * lane - self.pad)];
+                let k0 = row + self.pad / 2;
+                if self.pad.is_multiple_of(2) {
+                    deinterleave(src, &mut even[k0..], &mut odd[k0..]);
+                } else {
+                    deinterleave(src, &mut odd[k0..], &mut even[k0 + 1..]);
+                }
+            }
+            let d = |a: usize, b: usize| {
+                let start = ((a % 2) * 2 + b % 2) * q_len + (a / 2) * lane + b / 2;
+                &quarters[start..start + l]
+            };
+            for a in 0..4 {
+                for b in 0..4 {
+                    let out = &mut e[b * l..(b + 1) * l];
+                    match a {
+                        0 => combine(out, d(0, b), d(2, b), |x, y| x - y),
+                        1 => combine(out, d(1, b), d(2, b), |x, y| x + y),
+                        2 => combine(out, d(2, b), d(1, b), |x, y| x - y),
+                        _ => combine(out, d(1, b), d(3, b), |x, y| x - y),
                     }
                 }
-                let column = |a: usize, b: usize| {
-                    let start = (2 * a + b % 2) * half + b / 2;
-                    &band[start..start + tw]
-                };
-                for b in 0..4 {
-                    let (d0, d1, d2, d3) = (column(0, b), column(1, b), column(2, b), column(3, b));
-                    let (e0, rest) = e[b * 4 * tw..(b + 1) * 4 * tw].split_at_mut(tw);
-                    let (e1, rest) = rest.split_at_mut(tw);
-                    let (e2, e3) = rest.split_at_mut(tw);
-                    combine(e0, d0, d2, |x, y| x - y);
-                    combine(e1, d1, d2, |x, y| x + y);
-                    combine(e2, d2, d1, |x, y| x - y);
-                    combine(e3, d1, d3, |x, y| x - y);
-                }
-                // `e` holds column b's rows a at `(b 4 + a) tw`; now along each row.
-                let e_at = |a: usize, b: usize| &e[(b * 4 + a) * tw..][..tw];
-                let first = ti * tw;
-                for a in 0..4 {
-                    let (r0, r1, r2, r3) = (e_at(a, 0), e_at(a, 1), e_at(a, 2), e_at(a, 3));
-                    let start = |b: usize| ((a * 4 + b) * self.cin + c) * t_count + first;
-                    combine(&mut v[start(0)..][..tw], r0, r2, |x, y| x - y);
-                    combine(&mut v[start(1)..][..tw], r1, r2, |x, y| x + y);
-                    combine(&mut v[start(2)..][..tw], r2, r1, |x, y| x - y);
-                    combine(&mut v[start(3)..][..tw], r1, r3, |x, y| x - y);
-                }
+                let e_b = |b: usize| &e[b * l..(b + 1) * l];
+                let start = |b: usize| ((a * 4 + b) * self.cin + c) * l;
+                combine(&mut v[start(0)..][..l], e_b(0), e_b(2), |x, y| x - y);
+                combine(&mut v[start(1)..][..l], e_b(1), e_b(2), |x, y| x + y);
+                combine(&mut v[start(2)..][..l], e_b(2), e_b(1), |x, y| x - y);
+                combine(&mut v[start(3)..][..l], e_b(1), e_b(3), |x, y| x - y);
             }
         }
     }
 
-    /// `Y = A^T M A` of every tile from `m` (`[16, cout, T]`) into `y_b` (`[cout, ho, wo]`,
-    /// every element written once: each output lies in exactly one tile), a row of tiles at
-    /// a time as in [`Self::input_tiles_here`].
+    /// `Y = A^T M A` of every tile from `m` (`[16, cout, columns]`) into `y_b` (`[cout, ho,
+    /// wo]`, every element written once: each output lies in exactly one tile), for all tiles
+    /// at once as in [`Self::input_tiles_here`], then spread to the plane.
     #[inline(always)]
     fn output_tiles_here(&self, m: &[f32], y_b: &mut [MaybeUninit<f32>]) {
-        let (t_count, tw) = (self.count(), self.tw);
+        let (l, lane) = (self.columns(), self.tw + 1);
         let plane_len = self.ho * self.wo;
-        // A^T M: rows i = 0, 1 of every tile's column b, at `(i 4 + b) tw`.
-        let mut r = vec![0.0f32; 8 * tw];
-        let mut pair = vec![0.0f32; 2 * tw];
+        // A^T M: rows i = 0, 1 of column b at `(i 4 + b) l`; then the outputs (i, j) at
+        // `(i 2 + j) l`.
+        let mut r = vec![0.0f32; 8 * l];
+        let mut y = vec![0.0f32; 4 * l];
         for o in 0..self.cout {
+            let m_at = |a: usize, b: usize| &m[((a * 4 + b) * self.cout + o) * l..][..l];
+            for b in 0..4 {
+                let (m0, m1, m2, m3) = (m_at(0, b), m_at(1, b), m_at(2, b), m_at(3, b));
+                let (r0, r1) = r.split_at_mut(4 * l);
+                combine3(&mut r0[b * l..][..l], m0, m1, m2, |x, y, z| x + y + z);
+                combine3(&mut r1[b * l..][..l], m1, m2, m3, |x, y, z| x - y - z);
+            }
+            for i in 0..2 {
+                let row = |b: usize| &r[(i * 4 + b) * l..][..l];
+                let (q0, q1, q2, q3) = (row(0), row(1), row(2), row(3));
+                let (y0, y1) = y[i * 2 * l..(i + 1) * 2 * l].split_at_mut(l);
+                combine3(y0, q0, q1, q2, |x, y, z| x + y + z);
+                combine3(y1, q1, q2, q3, |x, y, z| x - y - z);
+            }
             let plane = &mut y_b[o * plane_len..(o + 1) * plane_len];
-            for ti in 0..self.th {
-                let first = ti * tw;
-                let m_at = |a: usize, b: usize| {
-                    &m[((a * 4 + b) * self.cout + o) * t_count + first..][..tw]
-                };
-                for b in 0..4 {
-                    let (m0, m1, m2, m3) = (m_at(0, b), m_at(1, b), m_at(2, b), m_at(3, b));
-                    let (r0, r1) = r.split_at_mut(4 * tw);
-                    combine3(&mut r0[b * tw..][..tw], m0, m1, m2, |x, y, z| x + y + z);
-                    combine3(&mut r1[b * tw..][..tw], m1, m2, m3, |x, y, z| x - y - z);
+            for (row, dst) in plane.chunks_exact_mut(self.wo).enumerate() {
+                let (ti, i) = (row / 2, row % 2);
+                let even = &y[(i * 2) * l + ti * lane..][..self.tw];
+                let odd = &y[(i * 2 + 1) * l + ti * lane..][..self.tw];
+                let mut pairs = dst.chunks_exact_mut(2);
+                for (pair, (e, o)) in (&mut pairs).zip(even.iter().zip(odd.iter())) {
+                    pair[0].write(*e);
+                    pair[1].write(*o);
                 }
-                for i in 0..2 {
-                    let y = 2 * ti + i;
-                    if y >= self.ho {
-                        break;
-                    }
-                    let row = |b: usize| &r[(i * 4 + b) * tw..][..tw];
-                    let (q0, q1, q2, q3) = (row(0), row(1), row(2), row(3));
-                    let (even, odd) = pair.split_at_mut(tw);
-                    combine3(even, q0, q1, q2, |x, y, z| x + y + z);
-                    combine3(odd, q1, q2, q3, |x, y, z| x - y - z);
-                    let dst = &mut plane[y * self.wo..(y + 1) * self.wo];
-                    let mut pairs = dst.chunks_exact_mut(2);
-                    for (pair, (e, o)) in (&mut pairs).zip(even.iter().zip(odd.iter())) {
-                        pair[0].write(*e);
-                        pair[1].write(*o);
-                    }
-                    if let [last] = pairs.into_remainder() {
-                        last.write(even[self.wo / 2]);
-                    }
+                if let [last] = pairs.into_remainder() {
+                    last.write(even[self.wo / 2]);
                 }
             }
         }
     }
 
     /// `A dY A^T` of every 2x2 tile of one image's output gradient `g_b` (`[cout, ho, wo]`;
-    /// outside the plane, zero) into `dm` (`[16, cout, T]`), a row of tiles at a time as in
-    /// [`Self::input_tiles_here`].
+    /// outside the plane, and in the columns that are not tiles, zero) into `dm` (`[16, cout,
+    /// columns]`), for all tiles at once as in [`Self::input_tiles_here`].
     #[inline(always)]
     fn output_gradient_tiles_here(&self, g_b: &[f32], dm: &mut [f32]) {
-        let (t_count, tw) = (self.count(), self.tw);
+        let (l, lane) = (self.columns(), self.tw + 1);
         let plane_len = self.ho * self.wo;
-        // The tiles' two rows, each as its even then its odd columns (zero past the plane).
-        let mut band = vec![0.0f32; 4 * tw];
-        // A dY down the columns: rows a = 0..4 of columns j = 0, 1, at `(j 4 + a) tw`.
-        let mut p = vec![0.0f32; 8 * tw];
+        // The tiles' outputs (i, j) at `(i 2 + j) l`; then A dY down the columns: rows
+        // a = 0..4 of column j at `(j 4 + a) l`.
+        let mut g = vec![0.0f32; 4 * l];
+        let mut p = vec![0.0f32; 8 * l];
         for o in 0..self.cout {
             let plane = &g_b[o * plane_len..(o + 1) * plane_len];
-            for ti in 0..self.th {
-                for (i, row) in band.chunks_exact_mut(2 * tw).enumerate() {
-                    row.fill(0.0);
-                    let y = 2 * ti + i;
-                    if y >= self.ho {
-                        continue;
-                    }
-                    let (even, odd) = row.split_at_mut(tw);
-                    deinterleave(&plane[y * self.wo..(y + 1) * self.wo], even, odd);
-                }
-                // g[i][j] of every tile: row i's even (j = 0) or odd (j = 1) columns.
-                let g = |i: usize, j: usize| &band[(2 * i + j) * tw..][..tw];
-                for j in 0..2 {
-                    let (g0, g1) = (g(0, j), g(1, j));
-                    let col = &mut p[j * 4 * tw..(j + 1) * 4 * tw];
-                    let (p0, rest) = col.split_at_mut(tw);
-                    let (p1, rest) = rest.split_at_mut(tw);
-                    let (p2, p3) = rest.split_at_mut(tw);
-                    p0.copy_from_slice(g0);
-                    combine(p1, g0, g1, |x, y| x + y);
-                    combine(p2, g0, g1, |x, y| x - y);
-                    combine(p3, g1, g1, |_, y| -y);
-                }
-                let first = ti * tw;
-                for a in 0..4 {
-                    let (q0, q1) = (&p[a * tw..][..tw], &p[(4 + a) * tw..][..tw]);
-                    let start = |b: usize| ((a * 4 + b) * self.cout + o) * t_count + first;
-                    dm[start(0)..][..tw].copy_from_slice(q0);
-                    combine(&mut dm[start(1)..][..tw], q0, q1, |x, y| x + y);
-                    combine(&mut dm[start(2)..][..tw], q0, q1, |x, y| x - y);
-                    combine(&mut dm[start(3)..][..tw], q1, q1, |_, y| -y);
-                }
+            g.fill(0.0);
+            for (row, src) in plane.chunks_exact(self.wo).enumerate() {
+                let (ti, i) = (row / 2, row % 2);
+                let (even, odd) = g[i * 2 * l..(i + 1) * 2 * l].split_at_mut(l);
+                deinterleave(src, &mut even[ti * lane..], &mut odd[ti * lane..]);
+            }
+            let g_at = |i: usize, j: usize| &g[(i * 2 + j) * l..][..l];
+            for j in 0..2 {
+                let (g0, g1) = (g_at(0, j), g_at(1, j));
+                let col = &mut p[j * 4 * l..(j + 1) * 4 * l];
+                let (p0, rest) = col.split_at_mut(l);
+                let (p1, rest) = rest.split_at_mut(l);
+                let (p2, p3) = rest.split_at_mut(l);
+                p0.copy_from_slice(g0);
+                combine(p1, g0, g1, |x, y| x + y);
+                combine(p2, g0, g1, |x, y| x - y);
+                combine(p3, g1, g1, |_, y| -y);
+            }
+            for a in 0..4 {
+                let (q0, q1) = (&p[a * l..][..l], &p[(4 + a) * l..][..l]);
+                let start = |b: usize| ((a * 4 + b) * self.cout + o) * l;
+                dm[start(0)..][..l].copy_from_slice(q0);
+                combine(&mut dm[start(1)..][..l], q0, q1, |x, y| x + y);
+                combine(&mut dm[start(2)..][..l], q0, q1, |x, y| x - y);
+                combine(&mut dm[start(3)..][..l], q1, q1, |_, y| -y);
             }
         }
     }
@@ -381,7 +375,7 @@ pub(super) fn forward(x: &[f32], u: &[f32], tiles: &Tiles, batch: usize) -> Vec<
         return Vec::new();
     }
     let (group, parallel, p) = groups(batch);
-    let (cin, cout, t) = (tiles.cin, tiles.cout, tiles.count());
+    let (cin, cout, t) = (tiles.cin, tiles.cout, tiles.columns());
     let task = |(y, x): (&mut [MaybeUninit<f32>], &[f32])| {
         with_scratch(POSITIONS * (cin + cout) * t, |scratch| {
             let (v, m) = scratch.split_at_mut(POSITIONS * cin * t);
@@ -425,7 +419,7 @@ pub(super) fn forward(x: &[f32], u: &[f32], tiles: &Tiles, batch: usize) -> Vec<
 pub(super) fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
     let tiles = Tiles::forward(s);
     let (in_len, out_len) = tiles.image_lens();
-    let (cin, cout, t) = (tiles.cin, tiles.cout, tiles.count());
+    let (cin, cout, t) = (tiles.cin, tiles.cout, tiles.columns());
     let len = POSITIONS * cin * cout;
     if s.batch * in_len * out_len == 0 {
         return vec![0.0; s.o * s.c * 9];
