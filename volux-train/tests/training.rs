@@ -255,6 +255,7 @@ fn every_shipped_config_loads() {
             "celeba128",
             "ffhq256",
             "quickstart",
+            "synthetic2h",
             "synthetic64"
         ]
     );
