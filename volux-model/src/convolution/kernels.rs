@@ -77,7 +77,7 @@ impl Strategy {
     }
 
     /// Scratch elements one image of a direct strategy needs (`layout`: the shape's
-    /// polyphase layout; Winograd runs its own batches, [`winograd::forward`]).
+    /// polyphase layout; Winograd's depend on the direction, [`winograd::scratch_len`]).
     fn scratch_len(self, s: Shape, layout: &Phases) -> usize {
         match self {
             Strategy::Pointwise | Strategy::Winograd => 0,
@@ -269,14 +269,8 @@ unsafe fn map_images(
 pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
     let strategy = Strategy::of(s);
     let layout = Phases::new(s);
-    if strategy == Strategy::Winograd {
-        return winograd::forward(
-            x,
-            &winograd::filters(weight, s, false),
-            &Tiles::forward(s),
-            s.batch,
-        );
-    }
+    let winograd = (strategy == Strategy::Winograd)
+        .then(|| (Tiles::forward(s), winograd::filters(weight, s, false)));
     let image = |y_b: &mut [MaybeUninit<f32>], x_b: &[f32], p| match strategy {
         // SAFETY: `weight` is `[o, c]`, `x_b` `[c, h w]`, `y_b` `[o, h w]`, written whole.
         Strategy::Pointwise => unsafe {
@@ -296,7 +290,12 @@ pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
         Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
             shifted::forward_image(x_b, weight, &layout, y_b, scratch, p)
         }),
-        Strategy::Winograd => unreachable!("taken above"),
+        Strategy::Winograd => {
+            let (tiles, u) = winograd.as_ref().expect("transformed above");
+            with_scratch(winograd::scratch_len(tiles), |scratch| {
+                winograd::forward_image(x_b, u, tiles, y_b, scratch, p)
+            })
+        }
     };
     // SAFETY: every strategy writes each image's `[o, ho, wo]` block whole.
     unsafe { map_images(s.batch, (x, s.x_len()), s.y_len(), image) }
@@ -306,15 +305,9 @@ pub(super) fn forward(x: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
 pub(super) fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
     let strategy = Strategy::of(s);
     let layout = Phases::new(s);
-    if strategy == Strategy::Winograd {
-        // The convolution with the flipped filters.
-        return winograd::forward(
-            y,
-            &winograd::filters(weight, s, true),
-            &Tiles::adjoint(s),
-            s.batch,
-        );
-    }
+    // The adjoint is the forward convolution with the flipped filters.
+    let winograd = (strategy == Strategy::Winograd)
+        .then(|| (Tiles::adjoint(s), winograd::filters(weight, s, true)));
     let image = |x_b: &mut [MaybeUninit<f32>], y_b: &[f32], p| match strategy {
         // SAFETY: `W^T` is `[c, o]`, `y_b` `[o, h w]`, `x_b` `[c, h w]`, written whole.
         Strategy::Pointwise => unsafe {
@@ -334,7 +327,12 @@ pub(super) fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
         Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
             shifted::adjoint_image(y_b, weight, &layout, x_b, scratch, p)
         }),
-        Strategy::Winograd => unreachable!("taken above"),
+        Strategy::Winograd => {
+            let (tiles, u) = winograd.as_ref().expect("transformed above");
+            with_scratch(winograd::scratch_len(tiles), |scratch| {
+                winograd::forward_image(y_b, u, tiles, x_b, scratch, p)
+            })
+        }
     };
     // SAFETY: every strategy writes each image's `[c, h, w]` block whole.
     unsafe { map_images(s.batch, (y, s.y_len()), s.x_len(), image) }
@@ -343,15 +341,14 @@ pub(super) fn adjoint(y: &[f32], weight: &[f32], s: Shape) -> Vec<f32> {
 /// `dW = sum_b g_b col(x_b)^T`, `[o, c, k, k]`, for inputs `x` and output gradients `g`:
 /// the direct strategies sum into a `[c k k, o]` buffer (the orientation the products run
 /// fast in, see [`patches::weight_gradient_image`]), transposed once at the end; Winograd
-/// sums in its transformed domain ([`winograd::weight_gradient`]).
+/// sums in its transformed domain and transforms back ([`winograd::filter_gradient`]).
 pub(super) fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
     let patch = s.patch();
     let strategy = Strategy::of(s);
-    if strategy == Strategy::Winograd {
-        return winograd::weight_gradient(x, g, s);
-    }
     let layout = Phases::new(s);
-    let sum = sum_over_images((x, g), s, s.o * patch, |acc, x_b, g_b, p| match strategy {
+    let tiles = (strategy == Strategy::Winograd).then(|| Tiles::forward(s));
+    let len = tiles.as_ref().map_or(s.o * patch, winograd::gradient_len);
+    let sum = sum_over_images((x, g), s, len, |acc, x_b, g_b, p| match strategy {
         // SAFETY: `x_b` is `[c, h w]`, `g_b^T` `[h w, o]`, `acc` `[c, o]`, initialised.
         Strategy::Pointwise => unsafe {
             let n = s.h * s.w;
@@ -370,8 +367,16 @@ pub(super) fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
         Strategy::Shifted => with_scratch(strategy.scratch_len(s, &layout), |scratch| {
             shifted::weight_gradient_image(x_b, g_b, &layout, acc, scratch, p)
         }),
-        Strategy::Winograd => unreachable!("taken above"),
+        Strategy::Winograd => {
+            let tiles = tiles.as_ref().expect("tiled above");
+            with_scratch(winograd::scratch_len(tiles), |scratch| {
+                winograd::weight_gradient_image(x_b, g_b, tiles, acc, scratch, p)
+            })
+        }
     });
+    if strategy == Strategy::Winograd {
+        return winograd::filter_gradient(&sum, s);
+    }
     // `[patch, o] -> [o, patch]`.
     let mut dw = vec![0.0f32; sum.len()];
     for (r, row) in sum.chunks_exact(s.o).enumerate() {

@@ -36,11 +36,9 @@
 
 use std::mem::MaybeUninit;
 
-use rayon::prelude::*;
-
 use super::kernels::{matmul, rows, rows_out, transposed};
 use super::{ConvGeometry, Shape};
-use crate::flex_extension::{dispatch_simd, with_scratch, written_by};
+use crate::flex_extension::dispatch_simd;
 
 /// Positions of a transformed tile.
 const POSITIONS: usize = 16;
@@ -131,11 +129,6 @@ impl Tiles {
             tiles.output_gradient_tiles_here(g_b, dm)
         }
         dispatch_simd!(kernel, (self, g_b, dm), (&Tiles, &[f32], &mut [f32]) => ())
-    }
-
-    /// Elements of one image's input and output.
-    fn image_lens(&self) -> (usize, usize) {
-        (self.cin * self.h * self.w, self.cout * self.ho * self.wo)
     }
 
     /// `V = B^T d B` of every tile of one image `x_b` (`[cin, h, w]`) into `v`, laid out
@@ -353,124 +346,83 @@ pub(super) fn filters(weight: &[f32], s: Shape, adjoint: bool) -> Vec<f32> {
     u
 }
 
-/// Images per task, whether the tasks run in parallel, and the products' parallelism: the batch split evenly over the threads,
-/// each task's products on its own thread, or, with fewer images than threads, one task
-/// whose products run on every thread.
-fn groups(batch: usize) -> (usize, bool, gemm::Parallelism) {
-    let threads = rayon::current_num_threads();
-    if batch >= threads {
-        (batch.div_ceil(threads), true, gemm::Parallelism::None)
-    } else {
-        (batch.max(1), false, gemm::Parallelism::Rayon(0))
-    }
+/// Scratch elements [`forward_image`] and [`weight_gradient_image`] need for one image of the
+/// direction `tiles`: its transformed inputs and products.
+pub(super) fn scratch_len(tiles: &Tiles) -> usize {
+    POSITIONS * (tiles.cin + tiles.cout) * tiles.columns()
 }
 
-/// `y = conv(x)` for every image of `x` (`[batch, cin, h, w]`) in the direction `tiles`, with
-/// the filters `u` of [`filters`]: `[batch, cout, ho, wo]`, one image at a time in each task
-/// (the tiles of several images side by side made longer products, but ones whose operands
-/// left the cache: 5.8-5.9 against 4.9-5.2 ms at 16^2 and 128 channels, batch 8, one core).
-pub(super) fn forward(x: &[f32], u: &[f32], tiles: &Tiles, batch: usize) -> Vec<f32> {
-    let (in_len, out_len) = tiles.image_lens();
-    if batch * out_len == 0 {
-        return Vec::new();
-    }
-    let (group, parallel, p) = groups(batch);
+/// `y_b = conv(x_b)` for one image of the direction `tiles` (`[cout, ho, wo]`, written whole)
+/// with the filters `u` of [`filters`], in `scratch` of [`scratch_len`]. One image at a time:
+/// the tiles of several images side by side made longer products, but ones whose operands
+/// left the cache (5.8-5.9 against 4.9-5.2 ms at 16^2 and 128 channels, batch 8, one core).
+pub(super) fn forward_image(
+    x_b: &[f32],
+    u: &[f32],
+    tiles: &Tiles,
+    y_b: &mut [MaybeUninit<f32>],
+    scratch: &mut [f32],
+    parallelism: gemm::Parallelism,
+) {
     let (cin, cout, t) = (tiles.cin, tiles.cout, tiles.columns());
-    let task = |(y, x): (&mut [MaybeUninit<f32>], &[f32])| {
-        with_scratch(POSITIONS * (cin + cout) * t, |scratch| {
-            let (v, m) = scratch.split_at_mut(POSITIONS * cin * t);
-            for (x_b, y_b) in x.chunks_exact(in_len).zip(y.chunks_exact_mut(out_len)) {
-                tiles.input_tiles(x_b, v);
-                for xi in 0..POSITIONS {
-                    // SAFETY: `U_xi` is `[cout, cin]`, `V_xi` `[cin, t]`, `M_xi` `[cout, t]`,
-                    // each inside its buffer; `M_xi` is written whole.
-                    unsafe {
-                        matmul(
-                            rows_out(&mut m[xi * cout * t..][..cout * t], t),
-                            false,
-                            (cout, cin, t),
-                            rows(&u[xi * cout * cin..][..cout * cin], cin),
-                            rows(&v[xi * cin * t..][..cin * t], t),
-                            p,
-                        )
-                    };
-                }
-                tiles.output_tiles(m, y_b);
-            }
-        })
-    };
-    let fill = |out: &mut [MaybeUninit<f32>]| {
-        if parallel {
-            out.par_chunks_mut(group * out_len)
-                .zip(x.par_chunks(group * in_len))
-                .for_each(task);
-        } else {
-            task((out, x));
-        }
-    };
-    // SAFETY: the tasks' output blocks cover the output, and each writes its images whole
-    // (every output lies in one tile).
-    unsafe { written_by(batch * out_len, fill) }
+    let (v, m) = scratch.split_at_mut(POSITIONS * cin * t);
+    tiles.input_tiles(x_b, v);
+    for xi in 0..POSITIONS {
+        // SAFETY: `U_xi` is `[cout, cin]`, `V_xi` `[cin, t]`, `M_xi` `[cout, t]`, each inside
+        // its buffer; `M_xi` is written whole.
+        unsafe {
+            matmul(
+                rows_out(&mut m[xi * cout * t..][..cout * t], t),
+                false,
+                (cout, cin, t),
+                rows(&u[xi * cout * cin..][..cout * cin], cin),
+                rows(&v[xi * cin * t..][..cin * t], t),
+                parallelism,
+            )
+        };
+    }
+    tiles.output_tiles(m, y_b);
 }
 
-/// `dW` (`[o, c, 3, 3]`) of the forward convolution `s` for inputs `x` and output gradients
-/// `g`: each task sums `dU^T_xi = V_xi (A g A^T)_xi^T` over its images, 16 products each,
-/// the tasks' sums are added, and [`filter_gradient`] transforms the total back.
-pub(super) fn weight_gradient(x: &[f32], g: &[f32], s: Shape) -> Vec<f32> {
-    let tiles = Tiles::forward(s);
-    let (in_len, out_len) = tiles.image_lens();
+/// Elements of the weight gradient's accumulator `dU^T` (`[16, c, o]`) for the forward
+/// direction `tiles`.
+pub(super) fn gradient_len(tiles: &Tiles) -> usize {
+    POSITIONS * tiles.cin * tiles.cout
+}
+
+/// `dU^T_xi += V_xi (A g_b A^T)_xi^T` for one image into `du_t` ([`gradient_len`]) of the
+/// forward direction `tiles`, in `scratch` of [`scratch_len`].
+pub(super) fn weight_gradient_image(
+    x_b: &[f32],
+    g_b: &[f32],
+    tiles: &Tiles,
+    du_t: &mut [f32],
+    scratch: &mut [f32],
+    parallelism: gemm::Parallelism,
+) {
     let (cin, cout, t) = (tiles.cin, tiles.cout, tiles.columns());
-    let len = POSITIONS * cin * cout;
-    if s.batch * in_len * out_len == 0 {
-        return vec![0.0; s.o * s.c * 9];
+    let (v, dm) = scratch.split_at_mut(POSITIONS * cin * t);
+    tiles.input_tiles(x_b, v);
+    tiles.output_gradient_tiles(g_b, dm);
+    for xi in 0..POSITIONS {
+        // SAFETY: `V_xi` is `[cin, t]`, `dM_xi^T` `[t, cout]`, the destination `[cin, cout]`
+        // inside `du_t`, initialised.
+        unsafe {
+            matmul(
+                rows_out(&mut du_t[xi * cin * cout..][..cin * cout], cout),
+                true,
+                (cin, t, cout),
+                rows(&v[xi * cin * t..][..cin * t], t),
+                transposed(&dm[xi * cout * t..][..cout * t], t),
+                parallelism,
+            )
+        };
     }
-    let (group, parallel, p) = groups(s.batch);
-    let task = |(x, g): (&[f32], &[f32])| -> Vec<f32> {
-        let mut du_t = vec![0.0f32; len];
-        with_scratch(POSITIONS * (cin + cout) * t, |scratch| {
-            let (v, dm) = scratch.split_at_mut(POSITIONS * cin * t);
-            for (x_b, g_b) in x.chunks_exact(in_len).zip(g.chunks_exact(out_len)) {
-                tiles.input_tiles(x_b, v);
-                tiles.output_gradient_tiles(g_b, dm);
-                for xi in 0..POSITIONS {
-                    // SAFETY: `V_xi` is `[cin, t]`, `dM_xi^T` `[t, cout]`, the destination
-                    // `[cin, cout]` inside `du_t`, initialised.
-                    unsafe {
-                        matmul(
-                            rows_out(&mut du_t[xi * cin * cout..][..cin * cout], cout),
-                            true,
-                            (cin, t, cout),
-                            rows(&v[xi * cin * t..][..cin * t], t),
-                            transposed(&dm[xi * cout * t..][..cout * t], t),
-                            p,
-                        )
-                    };
-                }
-            }
-        });
-        du_t
-    };
-    let partials: Vec<Vec<f32>> = if parallel {
-        x.par_chunks(group * in_len)
-            .zip(g.par_chunks(group * out_len))
-            .map(task)
-            .collect()
-    } else {
-        vec![task((x, g))]
-    };
-    let mut partials = partials.into_iter();
-    let mut sum = partials.next().unwrap_or_else(|| vec![0.0; len]);
-    for partial in partials {
-        for (total, v) in sum.iter_mut().zip(partial) {
-            *total += v;
-        }
-    }
-    filter_gradient(&sum, s)
 }
 
 /// `dW = G^T dU G` from the accumulated `du_t` (`[16, c, o]`): the weight gradient `[o, c, 3,
 /// 3]`.
-fn filter_gradient(du_t: &[f32], s: Shape) -> Vec<f32> {
+pub(super) fn filter_gradient(du_t: &[f32], s: Shape) -> Vec<f32> {
     // G^T q for q over one axis of the tile: [q0 + (q1 + q2) / 2, (q1 - q2) / 2,
     // (q1 + q2) / 2 + q3].
     let apply = |q: [f32; 4]| {
