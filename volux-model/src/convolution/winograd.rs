@@ -101,34 +101,56 @@ impl Tiles {
     }
 
     /// [`Self::input_tiles_here`] compiled for the widest vectors the CPU has.
-    fn input_tiles(&self, x_b: &[f32], v: &mut [f32]) {
+    fn input_tiles(&self, x_b: &[f32], v: &mut [f32], temp: &mut [f32]) {
         #[inline(always)]
-        fn kernel((tiles, x_b, v): (&Tiles, &[f32], &mut [f32])) {
-            tiles.input_tiles_here(x_b, v)
-        }
-        dispatch_simd!(kernel, (self, x_b, v), (&Tiles, &[f32], &mut [f32]) => ())
-    }
-
-    /// [`Self::output_tiles_here`] compiled for the widest vectors the CPU has.
-    fn output_tiles(&self, m: &[f32], y_b: &mut [MaybeUninit<f32>]) {
-        #[inline(always)]
-        fn kernel((tiles, m, y_b): (&Tiles, &[f32], &mut [MaybeUninit<f32>])) {
-            tiles.output_tiles_here(m, y_b)
+        fn kernel((tiles, x_b, v, temp): (&Tiles, &[f32], &mut [f32], &mut [f32])) {
+            tiles.input_tiles_here(x_b, v, temp)
         }
         dispatch_simd!(
             kernel,
-            (self, m, y_b),
-            (&Tiles, &[f32], &mut [MaybeUninit<f32>]) => ()
+            (self, x_b, v, temp),
+            (&Tiles, &[f32], &mut [f32], &mut [f32]) => ()
         )
     }
 
-    /// [`Self::output_gradient_tiles_here`] compiled for the widest vectors the CPU has.
-    fn output_gradient_tiles(&self, g_b: &[f32], dm: &mut [f32]) {
+    /// [`Self::output_tiles_here`] compiled for the widest vectors the CPU has.
+    fn output_tiles(&self, m: &[f32], y_b: &mut [MaybeUninit<f32>], temp: &mut [f32]) {
+        type Args<'a> = (
+            &'a Tiles,
+            &'a [f32],
+            &'a mut [MaybeUninit<f32>],
+            &'a mut [f32],
+        );
         #[inline(always)]
-        fn kernel((tiles, g_b, dm): (&Tiles, &[f32], &mut [f32])) {
-            tiles.output_gradient_tiles_here(g_b, dm)
+        fn kernel((tiles, m, y_b, temp): Args<'_>) {
+            tiles.output_tiles_here(m, y_b, temp)
         }
-        dispatch_simd!(kernel, (self, g_b, dm), (&Tiles, &[f32], &mut [f32]) => ())
+        dispatch_simd!(kernel, (self, m, y_b, temp), Args<'_> => ())
+    }
+
+    /// [`Self::output_gradient_tiles_here`] compiled for the widest vectors the CPU has.
+    fn output_gradient_tiles(&self, g_b: &[f32], dm: &mut [f32], temp: &mut [f32]) {
+        #[inline(always)]
+        fn kernel((tiles, g_b, dm, temp): (&Tiles, &[f32], &mut [f32], &mut [f32])) {
+            tiles.output_gradient_tiles_here(g_b, dm, temp)
+        }
+        dispatch_simd!(
+            kernel,
+            (self, g_b, dm, temp),
+            (&Tiles, &[f32], &mut [f32], &mut [f32]) => ()
+        )
+    }
+
+    /// Elements of one quarter plane of a padded input ([`Self::input_tiles_here`]): its
+    /// rows, and one more element that the last window reads.
+    fn quarter_len(&self) -> usize {
+        (self.th + 1) * (self.tw + 1) + 1
+    }
+
+    /// Working space of the three transforms (`temp`), the largest of their needs.
+    fn temp_len(&self) -> usize {
+        let l = self.columns();
+        (4 * self.quarter_len() + 4 * l).max(12 * l)
     }
 
     /// `V = B^T d B` of every tile of one image `x_b` (`[cin, h, w]`) into `v`, laid out
@@ -141,13 +163,12 @@ impl Tiles {
     /// in the tiles' own layout. So both halves of the transform are arithmetic on runs of
     /// every tile of the image.
     #[inline(always)]
-    fn input_tiles_here(&self, x_b: &[f32], v: &mut [f32]) {
-        let (l, lane) = (self.columns(), self.tw + 1);
-        // A quarter plane: its rows, and one more element that the last window reads.
-        let q_len = (self.th + 1) * lane + 1;
-        let mut quarters = vec![0.0f32; 4 * q_len];
-        // B^T d for one row a of the transformed tile: columns b = 0..4.
-        let mut e = vec![0.0f32; 4 * l];
+    fn input_tiles_here(&self, x_b: &[f32], v: &mut [f32], temp: &mut [f32]) {
+        let (l, lane, q_len) = (self.columns(), self.tw + 1, self.quarter_len());
+        // The four quarter planes, then B^T d for one row a of the transformed tile
+        // (columns b = 0..4).
+        let (quarters, e) = temp.split_at_mut(4 * q_len);
+        let e = &mut e[..4 * l];
         for c in 0..self.cin {
             let plane = &x_b[c * self.h * self.w..(c + 1) * self.h * self.w];
             quarters.fill(0.0);
@@ -196,13 +217,12 @@ impl Tiles {
     /// wo]`, every element written once: each output lies in exactly one tile), for all tiles
     /// at once as in [`Self::input_tiles_here`], then spread to the plane.
     #[inline(always)]
-    fn output_tiles_here(&self, m: &[f32], y_b: &mut [MaybeUninit<f32>]) {
+    fn output_tiles_here(&self, m: &[f32], y_b: &mut [MaybeUninit<f32>], temp: &mut [f32]) {
         let (l, lane) = (self.columns(), self.tw + 1);
         let plane_len = self.ho * self.wo;
         // A^T M: rows i = 0, 1 of column b at `(i 4 + b) l`; then the outputs (i, j) at
         // `(i 2 + j) l`.
-        let mut r = vec![0.0f32; 8 * l];
-        let mut y = vec![0.0f32; 4 * l];
+        let (r, y) = temp[..12 * l].split_at_mut(8 * l);
         for o in 0..self.cout {
             let m_at = |a: usize, b: usize| &m[((a * 4 + b) * self.cout + o) * l..][..l];
             for b in 0..4 {
@@ -239,13 +259,12 @@ impl Tiles {
     /// outside the plane, and in the columns that are not tiles, zero) into `dm` (`[16, cout,
     /// columns]`), for all tiles at once as in [`Self::input_tiles_here`].
     #[inline(always)]
-    fn output_gradient_tiles_here(&self, g_b: &[f32], dm: &mut [f32]) {
+    fn output_gradient_tiles_here(&self, g_b: &[f32], dm: &mut [f32], temp: &mut [f32]) {
         let (l, lane) = (self.columns(), self.tw + 1);
         let plane_len = self.ho * self.wo;
         // The tiles' outputs (i, j) at `(i 2 + j) l`; then A dY down the columns: rows
         // a = 0..4 of column j at `(j 4 + a) l`.
-        let mut g = vec![0.0f32; 4 * l];
-        let mut p = vec![0.0f32; 8 * l];
+        let (g, p) = temp[..12 * l].split_at_mut(4 * l);
         for o in 0..self.cout {
             let plane = &g_b[o * plane_len..(o + 1) * plane_len];
             g.fill(0.0);
@@ -347,9 +366,9 @@ pub(super) fn filters(weight: &[f32], s: Shape, adjoint: bool) -> Vec<f32> {
 }
 
 /// Scratch elements [`forward_image`] and [`weight_gradient_image`] need for one image of the
-/// direction `tiles`: its transformed inputs and products.
+/// direction `tiles`: its transformed inputs and products, and the transforms' working space.
 pub(super) fn scratch_len(tiles: &Tiles) -> usize {
-    POSITIONS * (tiles.cin + tiles.cout) * tiles.columns()
+    POSITIONS * (tiles.cin + tiles.cout) * tiles.columns() + tiles.temp_len()
 }
 
 /// `y_b = conv(x_b)` for one image of the direction `tiles` (`[cout, ho, wo]`, written whole)
@@ -365,8 +384,9 @@ pub(super) fn forward_image(
     parallelism: gemm::Parallelism,
 ) {
     let (cin, cout, t) = (tiles.cin, tiles.cout, tiles.columns());
-    let (v, m) = scratch.split_at_mut(POSITIONS * cin * t);
-    tiles.input_tiles(x_b, v);
+    let (v, rest) = scratch.split_at_mut(POSITIONS * cin * t);
+    let (m, temp) = rest.split_at_mut(POSITIONS * cout * t);
+    tiles.input_tiles(x_b, v, temp);
     for xi in 0..POSITIONS {
         // SAFETY: `U_xi` is `[cout, cin]`, `V_xi` `[cin, t]`, `M_xi` `[cout, t]`, each inside
         // its buffer; `M_xi` is written whole.
@@ -381,7 +401,7 @@ pub(super) fn forward_image(
             )
         };
     }
-    tiles.output_tiles(m, y_b);
+    tiles.output_tiles(m, y_b, temp);
 }
 
 /// Elements of the weight gradient's accumulator `dU^T` (`[16, c, o]`) for the forward
@@ -401,9 +421,10 @@ pub(super) fn weight_gradient_image(
     parallelism: gemm::Parallelism,
 ) {
     let (cin, cout, t) = (tiles.cin, tiles.cout, tiles.columns());
-    let (v, dm) = scratch.split_at_mut(POSITIONS * cin * t);
-    tiles.input_tiles(x_b, v);
-    tiles.output_gradient_tiles(g_b, dm);
+    let (v, rest) = scratch.split_at_mut(POSITIONS * cin * t);
+    let (dm, temp) = rest.split_at_mut(POSITIONS * cout * t);
+    tiles.input_tiles(x_b, v, temp);
+    tiles.output_gradient_tiles(g_b, dm, temp);
     for xi in 0..POSITIONS {
         // SAFETY: `V_xi` is `[cin, t]`, `dM_xi^T` `[t, cout]`, the destination `[cin, cout]`
         // inside `du_t`, initialised.
