@@ -23,7 +23,10 @@
 //! ([`crate::bias_act::lrelu_input_gradient`], read from the activation's output), blur and
 //! downsampling by their adjoints, minibatch std by its exact derivative, fully connected layers
 //! by the transposed matmul). First-order autodiff of [`r1_penalty`] with respect to the weights
-//! is then the exact R1 gradient.
+//! is then the exact R1 gradient. The same sweep, started from any cotangent of the logits,
+//! is the [`Pullback`] of a pass ([`Discriminator::forward_with_pullback`]): a training step
+//! takes the generator's gradient through it from the pass whose logits train the
+//! discriminator, so that the fakes are judged once.
 
 use std::f64::consts::{FRAC_1_SQRT_2, SQRT_2};
 
@@ -172,6 +175,47 @@ struct Trace {
     fc_out: Tensor<2>,
 }
 
+impl Trace {
+    /// The same values cut from the autodiff graph.
+    fn detached(self) -> Self {
+        Self {
+            input_hw: self.input_hw,
+            from_rgb_out: self.from_rgb_out.detach(),
+            blocks: self
+                .blocks
+                .into_iter()
+                .map(|b| BlockTrace {
+                    input_hw: b.input_hw,
+                    h0: b.h0.detach(),
+                    h1: b.h1.detach(),
+                })
+                .collect(),
+            epilogue_in: self.epilogue_in.detach(),
+            conv_out: self.conv_out.detach(),
+            fc_out: self.fc_out.detach(),
+        }
+    }
+}
+
+/// A forward pass kept for one input gradient with any cotangent of the logits
+/// ([`Discriminator::forward_with_pullback`]): the transposed Jacobian at the point the pass
+/// went through, outside the autodiff graph.
+pub struct Pullback {
+    /// The discriminator with its weights frozen (the same values as the forward pass's).
+    frozen: Discriminator,
+    trace: Trace,
+}
+
+impl Pullback {
+    /// `sum_b c_b d logit_b / d x` for the cotangent `c = cotangent`, `[batch, 1]`: the input
+    /// gradient of any loss of the logits whose derivative is `c`, cross-sample terms of
+    /// minibatch std included. Neither the weights nor the input are tracked: the result is
+    /// a constant.
+    pub fn input_gradient(self, cotangent: Tensor<2>) -> Tensor<4> {
+        self.frozen.sweep(self.trace, cotangent.detach())
+    }
+}
+
 impl DiscriminatorBlock {
     /// StyleGAN2's block: `y = (skip(x) + sqrt(2) lrelu(conv1(..))) / sqrt(2)`, the `1 / sqrt(2)`
     /// folded into the skip convolution's weights and the second activation's gain
@@ -248,23 +292,6 @@ impl Discriminator {
         self.forward_traced(x).0
     }
 
-    /// The logits of two batches of the same size, `(forward(a), forward(b))`, from one pass
-    /// over both: fewer and larger operations than two passes. The batches are interleaved
-    /// `[a_0, b_0, a_1, b_1, ..]`, which puts every sample in the minibatch-std group it has in
-    /// its own batch (group `i mod m` of `m = batch / group` groups), so the logits are those of
-    /// two passes. When the batch is not a multiple of the group size (a smaller group would
-    /// then span both batches), it makes the two passes.
-    pub fn forward_pair(&self, a: Tensor<4>, b: Tensor<4>) -> (Tensor<2>, Tensor<2>) {
-        let dims @ [n, c, h, w] = a.dims();
-        assert_eq!(b.dims(), dims, "both batches have one shape");
-        if !n.is_multiple_of(self.mbstd_group) || n < self.mbstd_group {
-            return (self.forward(a), self.forward(b));
-        }
-        let both = Tensor::stack::<5>(vec![a, b], 1).reshape([2 * n, c, h, w]);
-        let logits = self.forward(both).reshape([n, 2]);
-        (logits.clone().narrow(1, 0, 1), logits.narrow(1, 1, 1))
-    }
-
     /// Logits `[batch, 1]` and `d(sum of logits) / d x`, `[batch, in_channels, resolution,
     /// resolution]`, the latter by an explicit reverse sweep in ordinary tensor ops, so that it
     /// can itself be differentiated with respect to the weights (first-order autodiff).
@@ -274,8 +301,30 @@ impl Discriminator {
     /// takes (`autograd.grad(real_logits.sum(), real_img)`).
     pub fn input_gradient(&self, x: Tensor<4>) -> (Tensor<2>, Tensor<4>) {
         let (logits, trace) = self.forward_traced(x);
-        let [batch, _] = logits.dims();
-        let g_fc_out = logits.ones_like().matmul(self.out.effective_weight());
+        let grad = self.sweep(trace, logits.ones_like());
+        (logits, grad)
+    }
+
+    /// Logits `[batch, 1]` and a [`Pullback`] that gives the input gradient of any loss of
+    /// them afterwards, once its derivative is known, from this one pass. The logits are as
+    /// [`Self::forward`]'s, tracked for the weights' gradient as far as the weights and `x`
+    /// are; the pullback is computed outside the graph, as through a frozen discriminator.
+    /// A training step uses it to judge the fakes once for both phases: the generator's
+    /// gradient through the pullback, the discriminator's weight gradient through the logits.
+    pub fn forward_with_pullback(&self, x: Tensor<4>) -> (Tensor<2>, Pullback) {
+        let (logits, trace) = self.forward_traced(x);
+        let pullback = Pullback {
+            frozen: Module::no_grad(self.clone()),
+            trace: trace.detached(),
+        };
+        (logits, pullback)
+    }
+
+    /// The reverse sweep: `sum_b g_b d logit_b / d x` at the point `trace` recorded, for
+    /// the logits' cotangent `g_logits`, `[batch, 1]`.
+    fn sweep(&self, trace: Trace, g_logits: Tensor<2>) -> Tensor<4> {
+        let [batch, _] = g_logits.dims();
+        let g_fc_out = g_logits.matmul(self.out.effective_weight());
         let g_fc_pre = lrelu_input_gradient(g_fc_out, trace.fc_out, SQRT_2);
         let [_, c, hh, ww] = trace.conv_out.dims();
         let g_conv_out = g_fc_pre
@@ -293,8 +342,7 @@ impl Discriminator {
             g = block.input_gradient(g, block_trace);
         }
         let g_pre = lrelu_input_gradient(g, trace.from_rgb_out, SQRT_2);
-        let grad = self.from_rgb.adjoint(g_pre, 1, 0, trace.input_hw);
-        (logits, grad)
+        self.from_rgb.adjoint(g_pre, 1, 0, trace.input_hw)
     }
 
     /// Number of scalar parameters.

@@ -283,17 +283,17 @@ fn phase_flops(
         r1 += flops::discriminator_input_gradient(&c, batch);
         out.push((Phase::DiscriminatorForward(role), f, Exact));
     }
-    // Through the frozen discriminators only the input gradient is computed (1x forward).
+    // The discriminators' pullbacks on the fakes: their input gradient only (1x forward).
     out.push((
         Phase::GeneratorBackward,
         BACKWARD_FACTOR * g.differentiated() + d_forward,
         Estimate,
     ));
     out.push((Phase::GeneratorUpdate, flops::adam(g_params), Estimate));
-    // Reals and fakes through every active discriminator, forward and backward, and Adam.
+    // The reals' forward (the fakes' is the generator phase's), the backward of both, Adam.
     out.push((
         Phase::DiscriminatorStep,
-        2.0 * d_forward * (1.0 + BACKWARD_FACTOR) + flops::adam(d_params),
+        d_forward * (1.0 + 2.0 * BACKWARD_FACTOR) + flops::adam(d_params),
         Estimate,
     ));
     out.push((Phase::R1, r1, Exact));

@@ -7,7 +7,7 @@
 //! logits of any size (it returns `x` itself above a threshold).
 
 use burn::tensor::Tensor;
-use burn::tensor::activation::softplus;
+use burn::tensor::activation::{sigmoid, softplus};
 use serde::{Deserialize, Serialize};
 use volux_data::layers::{Layer, Layers};
 use volux_model::discriminator::{Discriminator, r1_penalty};
@@ -16,6 +16,15 @@ use volux_model::upsampler::bilinear_upsample;
 /// Generator loss against one discriminator: `mean softplus(-D(fake))`.
 pub fn generator_loss(fake_logits: Tensor<2>) -> Tensor<1> {
     softplus(fake_logits.neg(), 1.0).mean()
+}
+
+/// The derivative of [`generator_loss`] with respect to each logit, as a constant:
+/// `-sigmoid(-D(fake)) / batch`, finite for logits of any size (Burn's sigmoid saturates to 0
+/// and 1). It is the cotangent a discriminator's pullback turns into the generator's input
+/// gradient (`crate::step`).
+pub fn generator_loss_gradient(fake_logits: Tensor<2>) -> Tensor<2> {
+    let n = fake_logits.dims().iter().product::<usize>() as f64;
+    sigmoid(fake_logits.detach().neg()).div_scalar(-n)
 }
 
 /// Discriminator loss: `mean softplus(D(fake)) + mean softplus(-D(real))`.
@@ -293,6 +302,30 @@ mod tests {
                 "x {x}: {gx} vs {}",
                 want(*x)
             );
+        }
+    }
+
+    /// The closed form against autodiff of the loss itself, and finite where `exp` of the
+    /// logit overflows.
+    #[test]
+    fn generator_loss_gradient_is_the_losss_derivative() {
+        let device = Device::flex().autodiff();
+        let values = [1e4f32, -1e4, 88.0, -88.0, 20.0, -20.0, 0.0, 0.7];
+        let logits = Tensor::<1>::from_floats(values.as_slice(), &device)
+            .reshape([values.len(), 1])
+            .require_grad();
+        let grads = generator_loss(logits.clone()).backward();
+        let want = to_f32_vec(logits.grad(&grads).unwrap());
+        let got = to_f32_vec(generator_loss_gradient(logits));
+        let n = values.len() as f64;
+        for ((x, g), a) in values.iter().zip(&got).zip(&want) {
+            let exact = -1.0 / (1.0 + f64::from(*x).exp()) / n;
+            assert!(g.is_finite(), "logit {x}: {g}");
+            assert!(
+                (f64::from(*g) - exact).abs() <= 1e-7 * (1.0 + exact.abs()),
+                "logit {x}: {g} vs {exact}"
+            );
+            assert!((g - a).abs() <= 1e-7, "logit {x}: {g} vs autodiff {a}");
         }
     }
 

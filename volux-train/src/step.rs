@@ -11,6 +11,8 @@
 //! ([`crate::progressive`]). The discriminator phase reuses
 //! the generator phase's fakes instead of rendering a second batch: the generator is by far
 //! the dearer network, and the fakes differ from StyleGAN2's only by one generator update.
+//! It reuses the discriminators' verdict on them too: one forward pass on the fakes serves
+//! both phases ([`train_step`]).
 
 use std::collections::BTreeMap;
 
@@ -27,8 +29,8 @@ use volux_model::presets::{ByRole, DiscriminatorRole};
 use volux_model::profile::{self, Phase as ProfilePhase};
 
 use crate::losses::{
-    LossWeights, discriminator_loss, generator_loss, lazy_r1, path_loss, real_shading_condition,
-    shading_condition_lo,
+    LossWeights, discriminator_loss, generator_loss, generator_loss_gradient, lazy_r1, path_loss,
+    real_shading_condition, shading_condition_lo,
 };
 use crate::networks::{Discriminators, all_finite};
 use crate::progressive::faded_input;
@@ -80,11 +82,6 @@ pub struct StepOutcome {
 /// The generated images each discriminator looks at (`geometry`: the normals, `shading`:
 /// `[I_relit, D, S]`, `photo`: the relit image); `None` where its term is inactive.
 type Fakes = ByRole<Option<Tensor<4>>>;
-
-/// The fakes cut from the generator's graph (the discriminator step).
-fn detached(fakes: &Fakes) -> Fakes {
-    fakes.map(|_, t| t.as_ref().map(|t| t.clone().detach()))
-}
 
 /// The names a term's losses are logged under: generator, discriminator, R1
 /// ([`DiscriminatorRole::terms`]).
@@ -234,33 +231,92 @@ fn generate(
     Ok((fakes, path))
 }
 
-/// `loss * NaN` if `poison` (the non-finite guard's test hook).
-fn poisoned(loss: Tensor<1>, poison: bool) -> Tensor<1> {
-    if poison {
-        loss.mul_scalar(f64::NAN)
-    } else {
-        loss
+/// The discriminators' verdict on the fakes, for both phases.
+struct Verdicts {
+    /// The weighted sum of the generator's adversarial losses.
+    value: f64,
+    /// `sum_x sum(x * dL_G/dx)` over the fakes `x`: its gradient in the generator is the
+    /// adversarial losses'; `None` if no discriminator is active.
+    root: Option<Tensor<1>>,
+    /// Each discriminator's logits on its (detached) fakes, in `judged`'s order, tracked for
+    /// its weights.
+    fake_logits: Vec<Tensor<2>>,
+}
+
+/// One forward pass of every active discriminator on its fakes, logging each generator loss
+/// under its name: the logits for the discriminator phase, and through each pass's pullback
+/// the generator's input gradient.
+fn judge(judged: &[Pair], outcome: &mut StepOutcome) -> Verdicts {
+    let mut verdicts = Verdicts {
+        value: 0.0,
+        root: None,
+        fake_logits: Vec::with_capacity(judged.len()),
+    };
+    for ([g_name, ..], role, disc, fake, _, weight) in judged {
+        let (logits, pullback) = profile::timed(ProfilePhase::DiscriminatorForward(*role), || {
+            disc.forward_with_pullback(fake.clone().detach())
+        });
+        let seen = logits.clone().detach();
+        let value = scalar(&generator_loss(seen.clone()));
+        outcome.losses.insert(g_name, value);
+        verdicts.value += weight * value;
+        let g_x = profile::timed(ProfilePhase::GeneratorBackward, || {
+            pullback.input_gradient(generator_loss_gradient(seen).mul_scalar(*weight))
+        });
+        add(&mut verdicts.root, (fake.clone() * g_x).sum());
+        verdicts.fake_logits.push(logits);
+    }
+    verdicts
+}
+
+/// What an optimiser step descends: the loss's value (logged and checked) and the tensor
+/// whose `backward()` gives its gradient. The two differ where part of the gradient comes in
+/// through a pullback: `sum(x * dL/dx)` has `L`'s gradient in everything upstream of `x`.
+struct Objective {
+    value: f64,
+    root: Tensor<1>,
+}
+
+impl Objective {
+    fn new(loss: Tensor<1>) -> Self {
+        Self {
+            value: scalar(&loss),
+            root: loss,
+        }
+    }
+
+    /// The objective made NaN if `poison` (the non-finite guard's test hook).
+    fn poisoned(self, poison: bool) -> Self {
+        if poison {
+            Self {
+                value: f64::NAN,
+                root: self.root.mul_scalar(f64::NAN),
+            }
+        } else {
+            self
+        }
     }
 }
 
-/// Logs `loss` under `names.0`, then one optimiser step of `model` on it, unless the loss or
-/// the updated weights are not finite: then `model` and `opt` are left as they were and the
-/// reason is returned. The backward pass and the update are profiled as `phases`.
+/// Logs `objective`'s value under `names.0`, then one optimiser step of `model` on it, unless
+/// the value or the updated weights are not finite: then `model` and `opt` are left as they
+/// were and the reason is returned. The backward pass and the update are profiled as
+/// `phases`.
 fn guarded_update<M: Module + Clone>(
     model: &mut M,
     opt: &mut ModuleOptimizer,
     lr: f64,
-    loss: Tensor<1>,
+    objective: Objective,
     (total, what): (&'static str, &str),
     (backward, update): (ProfilePhase, ProfilePhase),
     outcome: &mut StepOutcome,
 ) -> Result<(), String> {
-    let value = scalar(&loss);
+    let Objective { value, root } = objective;
     outcome.losses.insert(total, value);
     if !value.is_finite() {
         return Err(format!("{what} loss is {value}"));
     }
-    let mut grads = profile::timed(backward, || loss.backward());
+    let mut grads = profile::timed(backward, || root.backward());
     let _update = profile::span(update);
     let grads = GradientsParams::from_module(&mut grads, &*model);
     let (before, opt_before) = (model.clone(), opt.clone());
@@ -275,6 +331,14 @@ fn guarded_update<M: Module + Clone>(
 
 /// One step: updates `g`, `d` and their optimisers in place, or, if any loss or updated
 /// weight is not finite, leaves all four as they were.
+///
+/// Each active discriminator judges the fakes once, for both phases: its forward pass on the
+/// detached fakes is tracked for its own weights (the discriminator phase's loss), and its
+/// [`Pullback`](volux_model::discriminator::Pullback) gives the generator the input gradient
+/// of the generator loss, `dL_G/dx`, which enters the generator's graph as `sum(x * dL_G/dx)`.
+/// That is exactly the gradient a pass through the frozen discriminator would give, at one
+/// discriminator forward on the fakes fewer per step: the discriminators are not updated
+/// until both gradients are taken, and the fakes the discriminator phase sees are these.
 pub fn train_step(
     g: &mut Generator,
     d: &mut Discriminators,
@@ -286,31 +350,33 @@ pub fn train_step(
     let w = inputs.weights;
     let fade = inputs.fade.as_deref().filter(|_| inputs.fade_discriminator);
 
-    // Generator phase: the discriminators are frozen (no weight gradients are computed).
+    // Generator phase: every active discriminator's verdict on the fakes and its pullback.
     let (fakes, path) = generate(g, inputs)?;
-    let frozen = Module::no_grad(d.clone());
-    let mut g_loss: Option<Tensor<1>> = None;
-    for ([g_name, ..], role, disc, fake, _, weight) in pairs(&frozen, &fakes, None, &w, fade) {
-        let logits = profile::timed(ProfilePhase::DiscriminatorForward(role), || {
-            disc.forward(fake)
-        });
-        let l = generator_loss(logits);
-        outcome.losses.insert(g_name, scalar(&l));
-        add(&mut g_loss, l.mul_scalar(weight));
-    }
+    let judged = pairs(d, &fakes, Some(inputs.reals), &w, fade);
+    let Verdicts {
+        value: mut g_value,
+        root: mut g_root,
+        fake_logits,
+    } = judge(&judged, &mut outcome);
     if let Some(p) = path {
-        outcome.losses.insert("path", scalar(&p));
-        add(&mut g_loss, p.mul_scalar(w.path));
+        let value = scalar(&p);
+        outcome.losses.insert("path", value);
+        g_value += w.path * value;
+        add(&mut g_root, p.mul_scalar(w.path));
     }
-    let Some(g_loss) = g_loss else {
+    let Some(g_root) = g_root else {
         return Ok(outcome);
+    };
+    let g_objective = Objective {
+        value: g_value,
+        root: g_root,
     };
     let (g_before, opt_g_before) = (g.clone(), opt_g.clone());
     if let Err(why) = guarded_update(
         g,
         opt_g,
         inputs.lr_g,
-        poisoned(g_loss, inputs.poison == Some(Phase::Generator)),
+        g_objective.poisoned(inputs.poison == Some(Phase::Generator)),
         ("G_total", "generator"),
         (
             ProfilePhase::GeneratorBackward,
@@ -322,24 +388,20 @@ pub fn train_step(
         return Ok(outcome);
     }
 
-    // Discriminator phase on the same fakes, detached.
+    // Discriminator phase: the reals, beside the fakes' logits of the generator phase.
     let _d_step = profile::span(ProfilePhase::DiscriminatorStep);
-    let fakes = detached(&fakes);
     let mut d_loss: Option<Tensor<1>> = None;
-    for ([_, d_name, r1_name], _, disc, fake, real, weight) in
-        pairs(d, &fakes, Some(inputs.reals), &w, fade)
+    for (([_, d_name, r1_name], _, disc, _, real, weight), fake_logits) in
+        judged.into_iter().zip(fake_logits)
     {
         let real = real.expect("the config leaves out terms whose reals the dataset lacks");
-        let (real_logits, fake_logits, r1) = match inputs.r1 {
+        let (real_logits, r1) = match inputs.r1 {
             Some((gamma, interval)) if gamma > 0.0 => {
                 let (logits, penalty) =
                     profile::timed(ProfilePhase::R1, || lazy_r1(disc, real, gamma, interval));
-                (logits, disc.forward(fake), Some(penalty))
+                (logits, Some(penalty))
             }
-            _ => {
-                let (real, fake) = disc.forward_pair(real, fake);
-                (real, fake, None)
-            }
+            _ => (disc.forward(real), None),
         };
         let l = discriminator_loss(real_logits, fake_logits);
         outcome.losses.insert(d_name, scalar(&l));
@@ -357,7 +419,7 @@ pub fn train_step(
         d,
         opt_d,
         inputs.lr_d,
-        poisoned(d_loss, inputs.poison == Some(Phase::Discriminator)),
+        Objective::new(d_loss).poisoned(inputs.poison == Some(Phase::Discriminator)),
         ("D_total", "discriminator"),
         (
             ProfilePhase::DiscriminatorStep,
@@ -385,6 +447,104 @@ mod tests {
     use crate::losses::area_downsample;
     use crate::progressive::faded_input;
     use volux_data::layers::Layers;
+
+    /// One pass per discriminator serves both phases: the generator's gradient through the
+    /// pullback equals backpropagation of its loss through the frozen discriminator, and the
+    /// discriminator's weight gradient from the kept logits equals a second pass's on the
+    /// detached fakes (what the step computed before).
+    #[test]
+    fn one_verdict_gives_both_phases_the_gradients_of_separate_passes() {
+        use burn::module::Param;
+        use volux_model::discriminator::DiscriminatorConfig;
+
+        let device = Device::flex().autodiff();
+        device.seed(7);
+        let disc = |seed| {
+            device.seed(seed);
+            DiscriminatorConfig::new(3, 16)
+                .with_channel_base(128)
+                .with_channel_max(32)
+                .init(&device)
+        };
+        let (d_a, d_g) = (disc(8), disc(9));
+        // A stand-in generator: fakes are a tracked function of one parameter.
+        let theta = Param::from_tensor(Tensor::<4>::random(
+            [4, 3, 16, 16],
+            Distribution::Normal(0.0, 1.0),
+            &device,
+        ));
+        let fakes = |t: &Tensor<4>| (t.clone().mul_scalar(1.5).tanh(), t.clone().sin());
+        let (fa, fg) = fakes(&theta.val());
+        let judged: Vec<Pair> = vec![
+            (
+                DiscriminatorRole::AlbedoLow.terms(),
+                DiscriminatorRole::AlbedoLow,
+                &d_a,
+                fa,
+                None,
+                1.0,
+            ),
+            (
+                DiscriminatorRole::Geometry.terms(),
+                DiscriminatorRole::Geometry,
+                &d_g,
+                fg,
+                None,
+                0.3,
+            ),
+        ];
+        let mut outcome = StepOutcome::default();
+        let verdicts = judge(&judged, &mut outcome);
+        let g_new = theta
+            .val()
+            .grad(&verdicts.root.unwrap().backward())
+            .unwrap();
+
+        // Before: the generator's loss through frozen discriminators, then a second forward.
+        let (fa, fg) = fakes(&theta.val());
+        let (frozen_a, frozen_g) = (Module::no_grad(d_a.clone()), Module::no_grad(d_g.clone()));
+        let la = generator_loss(frozen_a.forward(fa.clone()));
+        let lg = generator_loss(frozen_g.forward(fg.clone()));
+        let value = scalar(&la) + 0.3 * scalar(&lg);
+        let g_old = theta
+            .val()
+            .grad(&(la + lg.mul_scalar(0.3)).backward())
+            .unwrap();
+        assert!(
+            (verdicts.value - value).abs() <= 1e-6 * value.abs(),
+            "{} vs {value}",
+            verdicts.value
+        );
+        assert_eq!(outcome.losses.len(), 2);
+        let close = |got: Vec<f32>, want: Vec<f32>, what: &str| {
+            let scale = want.iter().fold(0f32, |m, v| m.max(v.abs()));
+            let err = got
+                .iter()
+                .zip(&want)
+                .fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                scale > 0.0 && err <= 1e-5 * scale,
+                "{what}: error {err:e}, largest {scale:e}"
+            );
+        };
+        close(to_f32_vec(g_new), to_f32_vec(g_old), "generator gradient");
+
+        let real = Tensor::<4>::random([4, 3, 16, 16], Distribution::Normal(0.0, 1.0), &device);
+        for (d, logits, fake) in [
+            (&d_a, &verdicts.fake_logits[0], fa),
+            (&d_g, &verdicts.fake_logits[1], fg),
+        ] {
+            let w = d.blocks[0].conv0.weight.val();
+            let kept = discriminator_loss(d.forward(real.clone()), logits.clone());
+            let again = discriminator_loss(d.forward(real.clone()), d.forward(fake.detach()));
+            assert_eq!(scalar(&kept), scalar(&again));
+            close(
+                to_f32_vec(w.grad(&kept.backward()).unwrap()),
+                to_f32_vec(w.grad(&again.backward()).unwrap()),
+                "discriminator gradient",
+            );
+        }
+    }
 
     /// The discriminators see what the step hands them: the reals' shading brought to the
     /// fakes' resolution, and the high-resolution albedo (real and fake) faded while the
