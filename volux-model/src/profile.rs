@@ -20,8 +20,6 @@ use std::time::{Duration, Instant};
 
 use burn::tensor::Device;
 
-use crate::presets::DiscriminatorRole;
-
 /// A phase of a training step.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Phase {
@@ -37,16 +35,19 @@ pub enum Phase {
     Upsampler,
     /// Shading upsampling and the relighting U-Net (`I_relit`).
     Relighting,
-    /// One discriminator's forward pass on the fakes in the generator phase.
-    DiscriminatorForward(DiscriminatorRole),
-    /// `backward()` of the generator's loss.
+    /// Every active discriminator's one pass on the fakes and its pullback (the generator
+    /// loss's input gradient), the discriminators side by side on the CPU's threads.
+    DiscriminatorsOnFakes,
+    /// `backward()` of the generator's loss, from the pullbacks' input gradients down.
     GeneratorBackward,
     /// The generator's Adam step and its finiteness check.
     GeneratorUpdate,
-    /// The discriminator phase: forwards on reals and fakes, backward, Adam (R1's forward
-    /// excluded, its backward included).
+    /// The discriminator phase: each discriminator's pass on the reals and the backward through
+    /// both its passes (side by side), lazy R1 on its steps, Adam.
     DiscriminatorStep,
-    /// The R1 penalty's forward: logits on reals and the explicit input gradient.
+    /// Lazy R1's extra time. No span records it: its work runs inside the discriminator step,
+    /// and a benchmark takes it as that step's time on a step with R1 less the median of the
+    /// steps without.
     R1,
     /// The generator's moving average.
     Ema,
@@ -62,17 +63,11 @@ impl Phase {
             Phase::Compositing => "compositing + light look-ups",
             Phase::Upsampler => "upsampler",
             Phase::Relighting => "relighting net",
-            Phase::DiscriminatorForward(role) => match role {
-                DiscriminatorRole::AlbedoLow => "D_A lo forward on fakes",
-                DiscriminatorRole::AlbedoHigh => "D_A hi forward on fakes",
-                DiscriminatorRole::Geometry => "D_G forward on fakes",
-                DiscriminatorRole::Shading => "D_S forward on fakes",
-                DiscriminatorRole::Photo => "D_P forward on fakes",
-            },
+            Phase::DiscriminatorsOnFakes => "discriminators on fakes + pullbacks (side by side)",
             Phase::GeneratorBackward => "generator backward",
             Phase::GeneratorUpdate => "generator Adam",
-            Phase::DiscriminatorStep => "discriminator step",
-            Phase::R1 => "R1 forward",
+            Phase::DiscriminatorStep => "discriminator step (side by side)",
+            Phase::R1 => "R1 (extra on its step)",
             Phase::Ema => "EMA",
         }
     }

@@ -25,6 +25,12 @@ use crate::schedule::{ActiveTerms, Stage};
 use crate::step::generator_wants;
 use crate::training_loop::{TrainError, TrainOptions, Trainer};
 
+mod discriminators;
+pub use discriminators::DiscriminatorTiming;
+
+/// Repeats of each discriminator's timing alone (the median is reported).
+const DISCRIMINATOR_REPEATS: usize = 3;
+
 /// Why a benchmark could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
@@ -123,6 +129,8 @@ pub struct BenchReport {
     /// The matmul peak, FLOP/s, and the side it was measured at.
     pub gemm_peak: f64,
     pub gemm_side: usize,
+    /// Each active discriminator timed alone, after the steps.
+    pub discriminators: Vec<DiscriminatorTiming>,
 }
 
 impl BenchReport {
@@ -181,11 +189,14 @@ impl BenchReport {
         );
         if self.r1_interval > 0 {
             s += &format!(
-                "- R1 runs on 1 step in {}; its row is that step's time, its backward is in the \
-                 discriminator step\n",
+                "- R1 runs on 1 step in {}; its row is the discriminator step's time on that \
+                 step less the median of the others'\n",
                 self.r1_interval
             );
         }
+        s += "- the discriminators run side by side on the CPU's threads (forwards on the \
+              fakes with their pullbacks, then each one's discriminator phase); each is timed \
+              alone in the second table\n";
         s += "\n| phase | median ms | share of step | GFLOP | counted | GFLOP/s | % of peak |\n";
         s += "|---|---|---|---|---|---|---|\n";
         for r in &self.rows {
@@ -212,6 +223,10 @@ impl BenchReport {
             "| **whole step** | {:.1} | 100% | | | | |\n",
             1e3 * self.step_median_s
         );
+        if !self.discriminators.is_empty() {
+            s += "\n";
+            s += &discriminators::markdown(&self.discriminators, peak);
+        }
         s
     }
 }
@@ -276,27 +291,29 @@ fn phase_flops(
         out.push((Phase::Proposal, g.proposal, Estimate));
     }
     let mut d_forward = 0.0;
-    let mut r1 = 0.0;
+    let mut on_fakes = 0.0;
     for &role in &roles {
         let (f, c) = disc(role);
         d_forward += f;
-        r1 += flops::discriminator_input_gradient(&c, batch);
-        out.push((Phase::DiscriminatorForward(role), f, Exact));
+        // The pass and its explicit reverse sweep (1x forward).
+        on_fakes += flops::discriminator_input_gradient(&c, batch);
     }
-    // The discriminators' pullbacks on the fakes: their input gradient only (1x forward).
+    out.push((Phase::DiscriminatorsOnFakes, on_fakes, Exact));
     out.push((
         Phase::GeneratorBackward,
-        BACKWARD_FACTOR * g.differentiated() + d_forward,
+        BACKWARD_FACTOR * g.differentiated(),
         Estimate,
     ));
     out.push((Phase::GeneratorUpdate, flops::adam(g_params), Estimate));
-    // The reals' forward (the fakes' is the generator phase's), the backward of both, Adam.
+    // The reals' pass (the fakes' is the generator phase's), the backward of both, Adam.
     out.push((
         Phase::DiscriminatorStep,
         d_forward * (1.0 + 2.0 * BACKWARD_FACTOR) + flops::adam(d_params),
         Estimate,
     ));
-    out.push((Phase::R1, r1, Exact));
+    // R1 replaces the reals' pass (1x forward) and its backward (2x) by the pass with its
+    // input gradient (2x) and that graph's backward (4x): 3x forward more.
+    out.push((Phase::R1, 3.0 * d_forward, Estimate));
     out.push((Phase::Ema, flops::ema(g_params), Estimate));
     out
 }
@@ -395,16 +412,28 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
         }
     }
     drop(profiler);
+    let alone = discriminators::time_alone(
+        trainer.discriminators(),
+        &config,
+        &active_roles(active),
+        batch,
+        trainer.device(),
+        DISCRIMINATOR_REPEATS,
+    );
     drop(trainer);
     // The scratch folder holds only the trainer's empty logs.
     let _ = std::fs::remove_dir_all(&out);
 
     let mut rows = Vec::new();
     for (phase, f, counting) in &flops {
-        let ran: Vec<f64> = steps
-            .iter()
-            .filter_map(|(_, t)| t.iter().find(|p| p.phase == *phase).map(|p| p.seconds))
-            .collect();
+        let ran: Vec<f64> = if *phase == Phase::R1 {
+            r1_extra(&steps, interval).into_iter().collect()
+        } else {
+            steps
+                .iter()
+                .filter_map(|(_, t)| phase_seconds(t, *phase))
+                .collect()
+        };
         if ran.is_empty() {
             continue;
         }
@@ -439,7 +468,25 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
         peak_rss_mib: peak_rss_mib(),
         gemm_peak: gemm,
         gemm_side: options.gemm_side,
+        discriminators: alone,
     })
+}
+
+/// A phase's time in one step's record.
+fn phase_seconds(times: &[PhaseTime], phase: Phase) -> Option<f64> {
+    times.iter().find(|p| p.phase == phase).map(|p| p.seconds)
+}
+
+/// Lazy R1's extra time: the discriminator step of the first measured step (the one that runs
+/// R1) less the median of the others'. `None` without R1 or without a step to compare.
+fn r1_extra(steps: &[(f64, Vec<PhaseTime>)], interval: usize) -> Option<f64> {
+    let d_step = |t: &[PhaseTime]| phase_seconds(t, Phase::DiscriminatorStep);
+    let (first, rest) = steps.split_first()?;
+    let without: Vec<f64> = rest.iter().filter_map(|(_, t)| d_step(t)).collect();
+    if interval == 0 || without.is_empty() {
+        return None;
+    }
+    Some(d_step(&first.1)? - median(&without))
 }
 
 #[cfg(test)]
@@ -450,6 +497,31 @@ mod tests {
     fn median_of_odd_and_even_counts() {
         assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
         assert_eq!(median(&[4.0, 1.0, 2.0, 3.0]), 2.5);
+    }
+
+    #[test]
+    fn r1_extra_is_its_steps_discriminator_step_less_the_others_median() {
+        let step = |d: f64| {
+            let times = vec![
+                PhaseTime {
+                    phase: Phase::Field,
+                    seconds: 1.0,
+                    calls: 1,
+                },
+                PhaseTime {
+                    phase: Phase::DiscriminatorStep,
+                    seconds: d,
+                    calls: 1,
+                },
+            ];
+            (2.0, times)
+        };
+        let steps = vec![step(0.5), step(0.2), step(0.3), step(0.25)];
+        let extra = r1_extra(&steps, 16).unwrap();
+        assert!((extra - 0.25).abs() < 1e-12, "{extra}");
+        assert_eq!(r1_extra(&steps, 0), None);
+        assert_eq!(r1_extra(&steps[..1], 16), None);
+        assert_eq!(r1_extra(&[], 16), None);
     }
 
     #[test]

@@ -16,11 +16,13 @@
 
 use std::collections::BTreeMap;
 
-use burn::module::Module;
+use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{GradientsParams, ModuleOptimizer};
-use burn::tensor::Tensor;
+use burn::tensor::{Device, Tensor};
+use rayon::prelude::*;
 use volux_data::batch::BatchTensors;
 use volux_model::discriminator::Discriminator;
+use volux_model::flex_extension::{Route, route};
 use volux_model::generated::GeneratorWants;
 use volux_model::generator::{Generator, GeneratorError};
 use volux_model::light_lookup::Lighting;
@@ -245,80 +247,138 @@ struct Verdicts {
 
 /// One forward pass of every active discriminator on its fakes, logging each generator loss
 /// under its name: the logits for the discriminator phase, and through each pass's pullback
-/// the generator's input gradient.
-fn judge(judged: &[Pair], outcome: &mut StepOutcome) -> Verdicts {
+/// the generator's input gradient. The discriminators run side by side ([`side_by_side`]).
+fn judge(judged: &[Pair], cpu: bool, outcome: &mut StepOutcome) -> Verdicts {
+    let each = side_by_side(judged, cpu, |(_, _, disc, fake, _, weight)| {
+        let (logits, pullback) = disc.forward_with_pullback(fake.clone().detach());
+        let seen = logits.clone().detach();
+        let value = scalar(&generator_loss(seen.clone()));
+        let g_x = pullback.input_gradient(generator_loss_gradient(seen).mul_scalar(*weight));
+        (value, g_x, logits)
+    });
     let mut verdicts = Verdicts {
         value: 0.0,
         root: None,
         fake_logits: Vec::with_capacity(judged.len()),
     };
-    for ([g_name, ..], role, disc, fake, _, weight) in judged {
-        let (logits, pullback) = profile::timed(ProfilePhase::DiscriminatorForward(*role), || {
-            disc.forward_with_pullback(fake.clone().detach())
-        });
-        let seen = logits.clone().detach();
-        let value = scalar(&generator_loss(seen.clone()));
+    for (([g_name, ..], _, _, fake, _, weight), (value, g_x, logits)) in judged.iter().zip(each) {
         outcome.losses.insert(g_name, value);
         verdicts.value += weight * value;
-        let g_x = profile::timed(ProfilePhase::GeneratorBackward, || {
-            pullback.input_gradient(generator_loss_gradient(seen).mul_scalar(*weight))
-        });
         add(&mut verdicts.root, (fake.clone() * g_x).sum());
         verdicts.fake_logits.push(logits);
     }
     verdicts
 }
 
-/// What an optimiser step descends: the loss's value (logged and checked) and the tensor
-/// whose `backward()` gives its gradient. The two differ where part of the gradient comes in
-/// through a pullback: `sum(x * dL/dx)` has `L`'s gradient in everything upstream of `x`.
-struct Objective {
-    value: f64,
-    root: Tensor<1>,
+/// `f` on every item, in order; on the CPU the items side by side on rayon's threads.
+///
+/// The discriminators are independent networks whose autodiff graphs are separate (Burn
+/// locks each graph on its own), each made of many small operations that keep two cores only
+/// partly busy; two at once fill them (docs/performance.md). Each item's arithmetic is the same
+/// whichever thread runs it, so the results do not depend on the scheduling: a step is the
+/// same, bit for bit, as one that runs the items in turn (at one thread, tested) or again
+/// (at a fixed thread count). A GPU backend gains nothing from it and runs them in turn.
+fn side_by_side<T: Sync, R: Send>(
+    items: &[T],
+    on_cpu: bool,
+    f: impl Fn(&T) -> R + Sync + Send,
+) -> Vec<R> {
+    if on_cpu {
+        items.par_iter().with_max_len(1).map(f).collect()
+    } else {
+        items.iter().map(f).collect()
+    }
 }
 
-impl Objective {
-    fn new(loss: Tensor<1>) -> Self {
-        Self {
-            value: scalar(&loss),
-            root: loss,
-        }
-    }
+/// Whether `device` runs on the CPU's threads (flex, with or without autodiff).
+fn on_cpu(device: &Device) -> bool {
+    !matches!(route(device), Route::Other)
+}
 
-    /// The objective made NaN if `poison` (the non-finite guard's test hook).
-    fn poisoned(self, poison: bool) -> Self {
-        if poison {
-            Self {
-                value: f64::NAN,
-                root: self.root.mul_scalar(f64::NAN),
+/// One discriminator's part of the discriminator phase.
+struct Judged {
+    /// The discriminator loss (unweighted).
+    loss: f64,
+    /// The lazy R1 penalty, where it ran.
+    r1: Option<f64>,
+    /// `weight * (loss + r1)`.
+    term: f64,
+    /// The term's gradient in this discriminator's weights (`None` if the term is not
+    /// finite: the step is then skipped).
+    grads: Option<GradientsParams>,
+}
+
+/// The discriminator phase of one discriminator: its reals' pass (with lazy R1 where it runs),
+/// its loss against the fakes' logits of the generator phase, and the backward pass through
+/// both passes, into this discriminator's weights.
+fn judge_reals(pair: &Pair, fake_logits: Tensor<2>, r1: Option<(f64, usize)>) -> Judged {
+    let (_, _, disc, _, real, weight) = pair;
+    let real = real
+        .clone()
+        .expect("the config leaves out terms whose reals the dataset lacks");
+    let (real_logits, penalty) = match r1 {
+        Some((gamma, interval)) if gamma > 0.0 => {
+            let (logits, penalty) = lazy_r1(disc, real, gamma, interval);
+            (logits, Some(penalty))
+        }
+        _ => (disc.forward(real), None),
+    };
+    let l = discriminator_loss(real_logits, fake_logits);
+    let loss = scalar(&l);
+    let r1 = penalty.as_ref().map(scalar);
+    let term = match penalty {
+        Some(p) => l + p,
+        None => l,
+    }
+    .mul_scalar(*weight);
+    let value = scalar(&term);
+    let grads = value.is_finite().then(|| {
+        let mut grads = term.backward();
+        GradientsParams::from_module(&mut grads, *disc)
+    });
+    Judged {
+        loss,
+        r1,
+        term: value,
+        grads,
+    }
+}
+
+/// Moves every gradient of `module`'s parameters from `from` into `into`.
+fn move_gradients<M: Module>(module: &M, from: &mut GradientsParams, into: &mut GradientsParams) {
+    struct Move<'a> {
+        from: &'a mut GradientsParams,
+        into: &'a mut GradientsParams,
+    }
+    impl ModuleVisitor for Move<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(g) = self.from.remove::<D>(param.id) {
+                self.into.register(param.id, g);
             }
-        } else {
-            self
         }
     }
+    module.visit(&mut Move { from, into });
 }
 
-/// Logs `objective`'s value under `names.0`, then one optimiser step of `model` on it, unless
-/// the value or the updated weights are not finite: then `model` and `opt` are left as they
-/// were and the reason is returned. The backward pass and the update are profiled as
-/// `phases`.
+/// Logs `value` under `names.0`, then one optimiser step of `model` along the gradients
+/// `grads` gives, unless the value or the updated weights are not finite: then `model` and
+/// `opt` are left as they were and the reason is returned (`grads` is not called). The
+/// update is profiled as `update`.
 fn guarded_update<M: Module + Clone>(
     model: &mut M,
     opt: &mut ModuleOptimizer,
     lr: f64,
-    objective: Objective,
+    (value, grads): (f64, impl FnOnce(&M) -> GradientsParams),
     (total, what): (&'static str, &str),
-    (backward, update): (ProfilePhase, ProfilePhase),
+    update: ProfilePhase,
     outcome: &mut StepOutcome,
 ) -> Result<(), String> {
-    let Objective { value, root } = objective;
     outcome.losses.insert(total, value);
     if !value.is_finite() {
         return Err(format!("{what} loss is {value}"));
     }
-    let mut grads = profile::timed(backward, || root.backward());
+    let grads = grads(&*model);
     let _update = profile::span(update);
-    let grads = GradientsParams::from_module(&mut grads, &*model);
     let (before, opt_before) = (model.clone(), opt.clone());
     *model = opt.step(lr, model.clone(), grads);
     if !all_finite(&*model) {
@@ -327,6 +387,11 @@ fn guarded_update<M: Module + Clone>(
         return Err(format!("{what} weights became non-finite"));
     }
     Ok(())
+}
+
+/// NaN if `poison` (the non-finite guard's test hook), else `value`.
+fn poisoned(value: f64, poison: bool) -> f64 {
+    if poison { f64::NAN } else { value }
 }
 
 /// One step: updates `g`, `d` and their optimisers in place, or, if any loss or updated
@@ -351,13 +416,16 @@ pub fn train_step(
     let fade = inputs.fade.as_deref().filter(|_| inputs.fade_discriminator);
 
     // Generator phase: every active discriminator's verdict on the fakes and its pullback.
+    let cpu = on_cpu(&inputs.z.device());
     let (fakes, path) = generate(g, inputs)?;
     let judged = pairs(d, &fakes, Some(inputs.reals), &w, fade);
     let Verdicts {
         value: mut g_value,
         root: mut g_root,
         fake_logits,
-    } = judge(&judged, &mut outcome);
+    } = profile::timed(ProfilePhase::DiscriminatorsOnFakes, || {
+        judge(&judged, cpu, &mut outcome)
+    });
     if let Some(p) = path {
         let value = scalar(&p);
         outcome.losses.insert("path", value);
@@ -367,64 +435,58 @@ pub fn train_step(
     let Some(g_root) = g_root else {
         return Ok(outcome);
     };
-    let g_objective = Objective {
-        value: g_value,
-        root: g_root,
-    };
     let (g_before, opt_g_before) = (g.clone(), opt_g.clone());
+    let g_grads = |g: &Generator| {
+        let mut grads = profile::timed(ProfilePhase::GeneratorBackward, || g_root.backward());
+        GradientsParams::from_module(&mut grads, g)
+    };
     if let Err(why) = guarded_update(
         g,
         opt_g,
         inputs.lr_g,
-        g_objective.poisoned(inputs.poison == Some(Phase::Generator)),
-        ("G_total", "generator"),
         (
-            ProfilePhase::GeneratorBackward,
-            ProfilePhase::GeneratorUpdate,
+            poisoned(g_value, inputs.poison == Some(Phase::Generator)),
+            g_grads,
         ),
+        ("G_total", "generator"),
+        ProfilePhase::GeneratorUpdate,
         &mut outcome,
     ) {
         outcome.skipped = Some(why);
         return Ok(outcome);
     }
 
-    // Discriminator phase: the reals, beside the fakes' logits of the generator phase.
+    // Discriminator phase: each discriminator's reals beside its fakes' logits, side by side.
     let _d_step = profile::span(ProfilePhase::DiscriminatorStep);
-    let mut d_loss: Option<Tensor<1>> = None;
-    for (([_, d_name, r1_name], _, disc, _, real, weight), fake_logits) in
-        judged.into_iter().zip(fake_logits)
-    {
-        let real = real.expect("the config leaves out terms whose reals the dataset lacks");
-        let (real_logits, r1) = match inputs.r1 {
-            Some((gamma, interval)) if gamma > 0.0 => {
-                let (logits, penalty) =
-                    profile::timed(ProfilePhase::R1, || lazy_r1(disc, real, gamma, interval));
-                (logits, Some(penalty))
-            }
-            _ => (disc.forward(real), None),
-        };
-        let l = discriminator_loss(real_logits, fake_logits);
-        outcome.losses.insert(d_name, scalar(&l));
-        let mut term = l;
-        if let Some(r1) = r1 {
-            outcome.losses.insert(r1_name, scalar(&r1));
-            term = term + r1;
-        }
-        add(&mut d_loss, term.mul_scalar(weight));
-    }
-    let Some(d_loss) = d_loss else {
+    if judged.is_empty() {
         return Ok(outcome);
-    };
+    }
+    let with_logits: Vec<(&Pair, Tensor<2>)> = judged.iter().zip(fake_logits).collect();
+    let each = side_by_side(&with_logits, cpu, |(pair, logits)| {
+        judge_reals(pair, logits.clone(), inputs.r1)
+    });
+    let mut d_value = 0.0;
+    let mut d_grads = GradientsParams::new();
+    for (([_, d_name, r1_name], _, disc, ..), judged) in judged.iter().zip(each) {
+        outcome.losses.insert(d_name, judged.loss);
+        if let Some(r1) = judged.r1 {
+            outcome.losses.insert(r1_name, r1);
+        }
+        d_value += judged.term;
+        if let Some(mut grads) = judged.grads {
+            move_gradients(*disc, &mut grads, &mut d_grads);
+        }
+    }
     if let Err(why) = guarded_update(
         d,
         opt_d,
         inputs.lr_d,
-        Objective::new(d_loss).poisoned(inputs.poison == Some(Phase::Discriminator)),
-        ("D_total", "discriminator"),
         (
-            ProfilePhase::DiscriminatorStep,
-            ProfilePhase::DiscriminatorStep,
+            poisoned(d_value, inputs.poison == Some(Phase::Discriminator)),
+            |_: &Discriminators| d_grads,
         ),
+        ("D_total", "discriminator"),
+        ProfilePhase::DiscriminatorStep,
         &mut outcome,
     ) {
         // The whole step is undone, the generator's half included.
@@ -494,11 +556,25 @@ mod tests {
             ),
         ];
         let mut outcome = StepOutcome::default();
-        let verdicts = judge(&judged, &mut outcome);
-        let g_new = theta
-            .val()
-            .grad(&verdicts.root.unwrap().backward())
-            .unwrap();
+        let verdicts = judge(&judged, true, &mut outcome);
+        let in_turn = judge(&judged, false, &mut StepOutcome::default());
+        let bits = |t: Tensor<2>| {
+            to_f32_vec(t)
+                .iter()
+                .map(|v| v.to_bits())
+                .collect::<Vec<_>>()
+        };
+        for (a, b) in verdicts.fake_logits.iter().zip(&in_turn.fake_logits) {
+            assert_eq!(
+                bits(a.clone()),
+                bits(b.clone()),
+                "side by side is in turn, bit for bit"
+            );
+        }
+        let root = verdicts.root.clone().unwrap();
+        let turn_root = in_turn.root.unwrap();
+        assert_eq!(scalar(&root).to_bits(), scalar(&turn_root).to_bits());
+        let g_new = theta.val().grad(&root.backward()).unwrap();
 
         // Before: the generator's loss through frozen discriminators, then a second forward.
         let (fa, fg) = fakes(&theta.val());
@@ -529,20 +605,61 @@ mod tests {
         };
         close(to_f32_vec(g_new), to_f32_vec(g_old), "generator gradient");
 
+        // The discriminator phase (`judge_reals`, with and without R1, side by side and in
+        // turn) against a second pass on the detached fakes.
         let real = Tensor::<4>::random([4, 3, 16, 16], Distribution::Normal(0.0, 1.0), &device);
-        for (d, logits, fake) in [
-            (&d_a, &verdicts.fake_logits[0], fa),
-            (&d_g, &verdicts.fake_logits[1], fg),
-        ] {
-            let w = d.blocks[0].conv0.weight.val();
-            let kept = discriminator_loss(d.forward(real.clone()), logits.clone());
-            let again = discriminator_loss(d.forward(real.clone()), d.forward(fake.detach()));
-            assert_eq!(scalar(&kept), scalar(&again));
-            close(
-                to_f32_vec(w.grad(&kept.backward()).unwrap()),
-                to_f32_vec(w.grad(&again.backward()).unwrap()),
-                "discriminator gradient",
-            );
+        let with_reals: Vec<Pair> = judged
+            .iter()
+            .map(|(n, r, d, f, _, w)| (*n, *r, *d, f.clone(), Some(real.clone()), *w))
+            .collect();
+        for r1 in [None, Some((0.5, 4))] {
+            let run = |cpu| {
+                // Fresh logits each time: a backward pass consumes its graph.
+                let logits = judge(&judged, true, &mut StepOutcome::default()).fake_logits;
+                let items: Vec<(&Pair, Tensor<2>)> = with_reals.iter().zip(logits).collect();
+                side_by_side(&items, cpu, |(pair, logits)| {
+                    judge_reals(pair, logits.clone(), r1)
+                })
+            };
+            let (side, turn) = (run(true), run(false));
+            for (i, ((_, _, d, fake, _, weight), (mut a, mut b))) in with_reals
+                .iter()
+                .zip(side.into_iter().zip(turn))
+                .enumerate()
+            {
+                let w = d.blocks[0].conv0.weight.val();
+                let id = d.blocks[0].conv0.weight.id;
+                let (ga, gb) = (
+                    a.grads.as_mut().unwrap().remove::<4>(id).unwrap(),
+                    b.grads.as_mut().unwrap().remove::<4>(id).unwrap(),
+                );
+                let (ga, gb) = (to_f32_vec(ga), to_f32_vec(gb));
+                assert_eq!(
+                    ga.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    gb.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    "side by side is in turn, bit for bit"
+                );
+                assert_eq!(a.term.to_bits(), b.term.to_bits());
+                assert_eq!(a.r1.is_some(), r1.is_some());
+                let mut again =
+                    discriminator_loss(d.forward(real.clone()), d.forward(fake.clone().detach()));
+                if let Some((gamma, interval)) = r1 {
+                    again = discriminator_loss(
+                        lazy_r1(d, real.clone(), gamma, interval).0,
+                        d.forward(fake.clone().detach()),
+                    ) + lazy_r1(d, real.clone(), gamma, interval).1;
+                }
+                let again = again.mul_scalar(*weight);
+                assert!(
+                    (a.term - scalar(&again)).abs() <= 1e-6 * (1.0 + a.term.abs()),
+                    "{i}"
+                );
+                close(
+                    ga,
+                    to_f32_vec(w.grad(&again.backward()).unwrap()),
+                    "discriminator gradient",
+                );
+            }
         }
     }
 
