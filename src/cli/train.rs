@@ -84,6 +84,11 @@ pub struct BenchArgs {
     /// Side of the square matmul that measures the machine's fp32 peak.
     #[arg(long, default_value_t = 2048)]
     pub gemm_side: usize,
+    /// Run the step's independent parts in turn, not side by side on the CPU's threads: the
+    /// same results, slower, with the generator's backward pass and the discriminator step
+    /// each timed on its own.
+    #[arg(long)]
+    pub in_turn: bool,
 }
 
 fn config_name(path: &std::path::Path) -> String {
@@ -109,6 +114,7 @@ fn run_bench(args: BenchArgs) -> anyhow::Result<()> {
         },
         steps: args.steps,
         gemm_side: args.gemm_side,
+        in_turn: args.in_turn,
         ..BenchOptions::default()
     };
     let out = args.out.unwrap_or_else(|| {

@@ -38,15 +38,22 @@ pub enum Phase {
     /// Every active discriminator's one pass on the fakes and its pullback (the generator
     /// loss's input gradient), the discriminators side by side on the CPU's threads.
     DiscriminatorsOnFakes,
-    /// `backward()` of the generator's loss, from the pullbacks' input gradients down.
+    /// `backward()` of the generator's loss, from the pullbacks' input gradients down (when
+    /// the step's parts run in turn).
     GeneratorBackward,
+    /// The generator's backward pass and the discriminator phase side by side (on the CPU):
+    /// [`Phase::GeneratorBackward`] and [`Phase::DiscriminatorStep`] at once.
+    BackwardPasses,
     /// The generator's Adam step and its finiteness check.
     GeneratorUpdate,
-    /// The discriminator phase: each discriminator's pass on the reals and the backward through
-    /// both its passes (side by side), lazy R1 on its steps, Adam.
+    /// The discriminator phase: each discriminator's pass on the reals (with lazy R1 on its
+    /// steps) and the backward through both its passes, the discriminators side by side on
+    /// the CPU (when the step's parts run in turn).
     DiscriminatorStep,
+    /// The discriminators' Adam step and its finiteness check.
+    DiscriminatorUpdate,
     /// Lazy R1's extra time. No span records it: its work runs inside the discriminator step,
-    /// and a benchmark takes it as that step's time on a step with R1 less the median of the
+    /// and a benchmark takes it as that phase's time on a step with R1 less the median of the
     /// steps without.
     R1,
     /// The generator's moving average.
@@ -63,10 +70,12 @@ impl Phase {
             Phase::Compositing => "compositing + light look-ups",
             Phase::Upsampler => "upsampler",
             Phase::Relighting => "relighting net",
-            Phase::DiscriminatorsOnFakes => "discriminators on fakes + pullbacks (side by side)",
+            Phase::DiscriminatorsOnFakes => "discriminators on fakes + pullbacks",
             Phase::GeneratorBackward => "generator backward",
             Phase::GeneratorUpdate => "generator Adam",
-            Phase::DiscriminatorStep => "discriminator step (side by side)",
+            Phase::BackwardPasses => "generator backward + discriminator step (side by side)",
+            Phase::DiscriminatorStep => "discriminator step",
+            Phase::DiscriminatorUpdate => "discriminator Adam",
             Phase::R1 => "R1 (extra on its step)",
             Phase::Ema => "EMA",
         }

@@ -68,6 +68,8 @@ pub struct BenchOptions {
     pub gemm_side: usize,
     /// Best of this many matmuls.
     pub gemm_repeats: usize,
+    /// Run each step's independent parts in turn ([`Trainer::set_in_turn`]).
+    pub in_turn: bool,
 }
 
 impl Default for BenchOptions {
@@ -78,6 +80,7 @@ impl Default for BenchOptions {
             steps: 5,
             gemm_side: 2048,
             gemm_repeats: 5,
+            in_turn: false,
         }
     }
 }
@@ -129,6 +132,8 @@ pub struct BenchReport {
     /// The matmul peak, FLOP/s, and the side it was measured at.
     pub gemm_peak: f64,
     pub gemm_side: usize,
+    /// Whether the step's parts ran in turn.
+    pub in_turn: bool,
     /// Each active discriminator timed alone, after the steps.
     pub discriminators: Vec<DiscriminatorTiming>,
 }
@@ -194,9 +199,15 @@ impl BenchReport {
                 self.r1_interval
             );
         }
-        s += "- the discriminators run side by side on the CPU's threads (forwards on the \
-              fakes with their pullbacks, then each one's discriminator phase); each is timed \
-              alone in the second table\n";
+        s += if self.in_turn {
+            "- the step's parts ran in turn (`--in-turn`): training runs the discriminators side \
+             by side on the CPU's threads, and the generator's backward pass beside the \
+             discriminator step; each discriminator is timed alone in the second table\n"
+        } else {
+            "- the discriminators run side by side on the CPU's threads, and the generator's \
+             backward pass beside the discriminator step (`--in-turn` times them apart); each \
+             discriminator is timed alone in the second table\n"
+        };
         s += "\n| phase | median ms | share of step | GFLOP | counted | GFLOP/s | % of peak |\n";
         s += "|---|---|---|---|---|---|---|\n";
         for r in &self.rows {
@@ -299,18 +310,15 @@ fn phase_flops(
         on_fakes += flops::discriminator_input_gradient(&c, batch);
     }
     out.push((Phase::DiscriminatorsOnFakes, on_fakes, Exact));
-    out.push((
-        Phase::GeneratorBackward,
-        BACKWARD_FACTOR * g.differentiated(),
-        Estimate,
-    ));
+    let g_backward = BACKWARD_FACTOR * g.differentiated();
+    // The reals' pass (the fakes' is the generator phase's) and the backward of both.
+    let d_step = d_forward * (1.0 + 2.0 * BACKWARD_FACTOR);
+    // Side by side the two are one row, in turn two.
+    out.push((Phase::BackwardPasses, g_backward + d_step, Estimate));
+    out.push((Phase::GeneratorBackward, g_backward, Estimate));
+    out.push((Phase::DiscriminatorStep, d_step, Estimate));
     out.push((Phase::GeneratorUpdate, flops::adam(g_params), Estimate));
-    // The reals' pass (the fakes' is the generator phase's), the backward of both, Adam.
-    out.push((
-        Phase::DiscriminatorStep,
-        d_forward * (1.0 + 2.0 * BACKWARD_FACTOR) + flops::adam(d_params),
-        Estimate,
-    ));
+    out.push((Phase::DiscriminatorUpdate, flops::adam(d_params), Estimate));
     // R1 replaces the reals' pass (1x forward) and its backward (2x) by the pass with its
     // input gradient (2x) and that graph's backward (4x): 3x forward more.
     out.push((Phase::R1, 3.0 * d_forward, Estimate));
@@ -385,6 +393,7 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
             max_steps: None,
         },
     )?;
+    trainer.set_in_turn(options.in_turn);
     let g_params = trainer.generator().num_params();
     let d_params = trainer.discriminators().num_params();
     let flops = phase_flops(&config, active, g_params, d_params);
@@ -468,6 +477,7 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
         peak_rss_mib: peak_rss_mib(),
         gemm_peak: gemm,
         gemm_side: options.gemm_side,
+        in_turn: options.in_turn,
         discriminators: alone,
     })
 }
@@ -477,10 +487,14 @@ fn phase_seconds(times: &[PhaseTime], phase: Phase) -> Option<f64> {
     times.iter().find(|p| p.phase == phase).map(|p| p.seconds)
 }
 
-/// Lazy R1's extra time: the discriminator step of the first measured step (the one that runs
-/// R1) less the median of the others'. `None` without R1 or without a step to compare.
+/// Lazy R1's extra time: the phase holding the discriminator step (its own row in turn, the
+/// backward passes' side by side) on the first measured step, the one that runs R1, less the
+/// median of the others'. `None` without R1 or without a step to compare.
 fn r1_extra(steps: &[(f64, Vec<PhaseTime>)], interval: usize) -> Option<f64> {
-    let d_step = |t: &[PhaseTime]| phase_seconds(t, Phase::DiscriminatorStep);
+    let d_step = |t: &[PhaseTime]| {
+        phase_seconds(t, Phase::DiscriminatorStep)
+            .or_else(|| phase_seconds(t, Phase::BackwardPasses))
+    };
     let (first, rest) = steps.split_first()?;
     let without: Vec<f64> = rest.iter().filter_map(|(_, t)| d_step(t)).collect();
     if interval == 0 || without.is_empty() {

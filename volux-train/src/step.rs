@@ -61,6 +61,11 @@ pub struct StepInputs<'a> {
     pub r1: Option<(f64, usize)>,
     pub lr_g: f64,
     pub lr_d: f64,
+    /// Run the independent parts of the step side by side on rayon's threads (the
+    /// discriminators; the generator's backward pass beside the discriminator phase):
+    /// [`side_by_side_on`] the device, unless a benchmark asks for them in turn. The results
+    /// are the same either way.
+    pub side_by_side: bool,
     /// Test hook: make this phase's loss NaN.
     pub poison: Option<Phase>,
 }
@@ -280,18 +285,19 @@ fn judge(judged: &[Pair], cpu: bool, outcome: &mut StepOutcome) -> Verdicts {
 /// (at a fixed thread count). A GPU backend gains nothing from it and runs them in turn.
 fn side_by_side<T: Sync, R: Send>(
     items: &[T],
-    on_cpu: bool,
+    together: bool,
     f: impl Fn(&T) -> R + Sync + Send,
 ) -> Vec<R> {
-    if on_cpu {
+    if together {
         items.par_iter().with_max_len(1).map(f).collect()
     } else {
         items.iter().map(f).collect()
     }
 }
 
-/// Whether `device` runs on the CPU's threads (flex, with or without autodiff).
-fn on_cpu(device: &Device) -> bool {
+/// Whether a step on `device` runs its independent parts side by side: on the CPU's threads
+/// (flex, with or without autodiff), not on a GPU, which gains nothing from it.
+pub fn side_by_side_on(device: &Device) -> bool {
     !matches!(route(device), Route::Other)
 }
 
@@ -360,25 +366,32 @@ fn move_gradients<M: Module>(module: &M, from: &mut GradientsParams, into: &mut 
     module.visit(&mut Move { from, into });
 }
 
-/// Logs `value` under `names.0`, then one optimiser step of `model` along the gradients
-/// `grads` gives, unless the value or the updated weights are not finite: then `model` and
-/// `opt` are left as they were and the reason is returned (`grads` is not called). The
-/// update is profiled as `update`.
-fn guarded_update<M: Module + Clone>(
-    model: &mut M,
-    opt: &mut ModuleOptimizer,
-    lr: f64,
-    (value, grads): (f64, impl FnOnce(&M) -> GradientsParams),
+/// Logs a loss's `value` under `total` and refuses a value that is not finite.
+fn checked(
+    value: f64,
     (total, what): (&'static str, &str),
-    update: ProfilePhase,
     outcome: &mut StepOutcome,
 ) -> Result<(), String> {
     outcome.losses.insert(total, value);
-    if !value.is_finite() {
-        return Err(format!("{what} loss is {value}"));
+    if value.is_finite() {
+        Ok(())
+    } else {
+        Err(format!("{what} loss is {value}"))
     }
-    let grads = grads(&*model);
-    let _update = profile::span(update);
+}
+
+/// One optimiser step of `model` along `grads`, unless the updated weights are not finite:
+/// then `model` and `opt` are left as they were and the reason is returned. Profiled as
+/// `phase`.
+fn updated<M: Module + Clone>(
+    model: &mut M,
+    opt: &mut ModuleOptimizer,
+    lr: f64,
+    grads: GradientsParams,
+    what: &str,
+    phase: ProfilePhase,
+) -> Result<(), String> {
+    let _update = profile::span(phase);
     let (before, opt_before) = (model.clone(), opt.clone());
     *model = opt.step(lr, model.clone(), grads);
     if !all_finite(&*model) {
@@ -416,7 +429,6 @@ pub fn train_step(
     let fade = inputs.fade.as_deref().filter(|_| inputs.fade_discriminator);
 
     // Generator phase: every active discriminator's verdict on the fakes and its pullback.
-    let cpu = on_cpu(&inputs.z.device());
     let (fakes, path) = generate(g, inputs)?;
     let judged = pairs(d, &fakes, Some(inputs.reals), &w, fade);
     let Verdicts {
@@ -424,7 +436,7 @@ pub fn train_step(
         root: mut g_root,
         fake_logits,
     } = profile::timed(ProfilePhase::DiscriminatorsOnFakes, || {
-        judge(&judged, cpu, &mut outcome)
+        judge(&judged, inputs.side_by_side, &mut outcome)
     });
     if let Some(p) = path {
         let value = scalar(&p);
@@ -435,36 +447,53 @@ pub fn train_step(
     let Some(g_root) = g_root else {
         return Ok(outcome);
     };
-    let (g_before, opt_g_before) = (g.clone(), opt_g.clone());
-    let g_grads = |g: &Generator| {
-        let mut grads = profile::timed(ProfilePhase::GeneratorBackward, || g_root.backward());
-        GradientsParams::from_module(&mut grads, g)
-    };
-    if let Err(why) = guarded_update(
-        g,
-        opt_g,
-        inputs.lr_g,
-        (
-            poisoned(g_value, inputs.poison == Some(Phase::Generator)),
-            g_grads,
-        ),
+    if let Err(why) = checked(
+        poisoned(g_value, inputs.poison == Some(Phase::Generator)),
         ("G_total", "generator"),
-        ProfilePhase::GeneratorUpdate,
         &mut outcome,
     ) {
         outcome.skipped = Some(why);
         return Ok(outcome);
     }
 
-    // Discriminator phase: each discriminator's reals beside its fakes' logits, side by side.
-    let _d_step = profile::span(ProfilePhase::DiscriminatorStep);
-    if judged.is_empty() {
+    // The two backward passes: the generator's, from the pullbacks down, and the
+    // discriminator phase, each discriminator's reals and the backward through both its
+    // passes. They share no graph, and neither reads what the other writes (the updates come
+    // after both), so on the CPU they run side by side too.
+    let with_logits: Vec<(&Pair, Tensor<2>)> = judged.iter().zip(fake_logits).collect();
+    let generator: &Generator = g;
+    let g_backward = || {
+        let mut grads = g_root.backward();
+        GradientsParams::from_module(&mut grads, generator)
+    };
+    let d_phase = || {
+        side_by_side(&with_logits, inputs.side_by_side, |(pair, logits)| {
+            judge_reals(pair, logits.clone(), inputs.r1)
+        })
+    };
+    let (g_grads, each) = if inputs.side_by_side {
+        profile::timed(ProfilePhase::BackwardPasses, || {
+            rayon::join(g_backward, d_phase)
+        })
+    } else {
+        (
+            profile::timed(ProfilePhase::GeneratorBackward, g_backward),
+            profile::timed(ProfilePhase::DiscriminatorStep, d_phase),
+        )
+    };
+
+    let (g_before, opt_g_before) = (g.clone(), opt_g.clone());
+    if let Err(why) = updated(
+        g,
+        opt_g,
+        inputs.lr_g,
+        g_grads,
+        "generator",
+        ProfilePhase::GeneratorUpdate,
+    ) {
+        outcome.skipped = Some(why);
         return Ok(outcome);
     }
-    let with_logits: Vec<(&Pair, Tensor<2>)> = judged.iter().zip(fake_logits).collect();
-    let each = side_by_side(&with_logits, cpu, |(pair, logits)| {
-        judge_reals(pair, logits.clone(), inputs.r1)
-    });
     let mut d_value = 0.0;
     let mut d_grads = GradientsParams::new();
     for (([_, d_name, r1_name], _, disc, ..), judged) in judged.iter().zip(each) {
@@ -477,18 +506,25 @@ pub fn train_step(
             move_gradients(*disc, &mut grads, &mut d_grads);
         }
     }
-    if let Err(why) = guarded_update(
-        d,
-        opt_d,
-        inputs.lr_d,
-        (
-            poisoned(d_value, inputs.poison == Some(Phase::Discriminator)),
-            |_: &Discriminators| d_grads,
-        ),
+    if judged.is_empty() {
+        return Ok(outcome);
+    }
+    let d_result = checked(
+        poisoned(d_value, inputs.poison == Some(Phase::Discriminator)),
         ("D_total", "discriminator"),
-        ProfilePhase::DiscriminatorStep,
         &mut outcome,
-    ) {
+    )
+    .and_then(|()| {
+        updated(
+            d,
+            opt_d,
+            inputs.lr_d,
+            d_grads,
+            "discriminator",
+            ProfilePhase::DiscriminatorUpdate,
+        )
+    });
+    if let Err(why) = d_result {
         // The whole step is undone, the generator's half included.
         *g = g_before;
         *opt_g = opt_g_before;

@@ -32,7 +32,7 @@ use crate::networks::{Discriminators, ema_beta, materialize, update_ema};
 use crate::run_folder;
 use crate::sampling;
 use crate::schedule::Stage;
-use crate::step::{Phase, StepInputs, train_step};
+use crate::step::{Phase, StepInputs, side_by_side_on, train_step};
 
 mod error;
 
@@ -108,6 +108,8 @@ pub struct Trainer {
     fake_poses: FakePoses,
     /// The light evaluation of `[output] eval_kimg`, when one is attached.
     evaluator: Option<Box<dyn ProgressEvaluator>>,
+    /// Run a step's independent parts in turn even on the CPU ([`Trainer::set_in_turn`]).
+    in_turn: bool,
 }
 
 /// The `purpose` of [`derived_seed`] for the fakes' camera draws (latents use `0..batch`, the
@@ -251,6 +253,7 @@ impl Trainer {
             poisoned: Vec::new(),
             fake_poses,
             evaluator: None,
+            in_turn: false,
         })
     }
 
@@ -286,6 +289,13 @@ impl Trainer {
     /// The training device (with autodiff).
     pub fn device(&self) -> &Device {
         &self.device
+    }
+
+    /// Runs each step's independent parts (the discriminators, the generator's backward pass
+    /// beside the discriminator phase) in turn instead of side by side on the CPU's threads:
+    /// the same results, slower, with each part's time its own (the benchmark's `--in-turn`).
+    pub fn set_in_turn(&mut self, in_turn: bool) {
+        self.in_turn = in_turn;
     }
 
     /// Places the run at `step` with `images` seen, without training (benchmarks): the next
@@ -382,6 +392,7 @@ impl Trainer {
                 .then_some((c.train.r1_gamma, interval)),
             lr_g: c.train.lr_g,
             lr_d: c.train.lr_d,
+            side_by_side: !self.in_turn && side_by_side_on(&self.device),
             poison: self
                 .poisoned
                 .iter()

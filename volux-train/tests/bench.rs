@@ -61,10 +61,12 @@ fn phases_of_both_stages(proposal: bool) {
     std::fs::write(&path, text).unwrap();
     let config = TrainConfig::load(&path).unwrap();
     assert_eq!(config.generator().renderer.proposal > 0, proposal);
+    // Stage 1 with the step's parts in turn, stage 2 side by side (the default).
     let options = |stage| BenchOptions {
         stage,
         steps: 2,
         gemm_side: 128,
+        in_turn: stage == Stage::One,
         ..BenchOptions::default()
     };
 
@@ -74,9 +76,8 @@ fn phases_of_both_stages(proposal: bool) {
         Phase::Compositing,
         Phase::Upsampler,
         Phase::DiscriminatorsOnFakes,
-        Phase::GeneratorBackward,
         Phase::GeneratorUpdate,
-        Phase::DiscriminatorStep,
+        Phase::DiscriminatorUpdate,
         Phase::R1,
         Phase::Ema,
     ];
@@ -96,6 +97,14 @@ fn phases_of_both_stages(proposal: bool) {
             present.push(Phase::Proposal);
         } else {
             absent.push(Phase::Proposal);
+        }
+        let in_turn = [Phase::GeneratorBackward, Phase::DiscriminatorStep];
+        if stage == Stage::One {
+            present.extend(in_turn);
+            absent.push(Phase::BackwardPasses);
+        } else {
+            present.push(Phase::BackwardPasses);
+            absent.extend(in_turn);
         }
         for phase in present {
             let row = report
