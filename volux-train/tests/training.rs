@@ -138,6 +138,17 @@ fn training_runs_both_stages_and_resumes_with_identical_losses() {
     let state = checkpoint::read_state(&kept[1].1).unwrap();
     assert_eq!((state.step, state.images), (4, 8));
 
+    // The step's parts in turn instead of side by side: the same losses, bit for bit.
+    let in_turn = dir.path().join("in-turn");
+    let mut t = Trainer::new(c.clone(), options(&in_turn, false, None)).unwrap();
+    t.set_in_turn(true);
+    let (_, turned) = losses(&mut t);
+    assert_eq!(turned.len(), 4);
+    for (a, b) in all.iter().zip(&turned) {
+        assert_eq!(a.2, b.2, "step {} differs in turn", a.0);
+    }
+    drop(t);
+
     // Interrupted after 1 step (mid fade-in, before any checkpoint of its own), then resumed.
     let split = dir.path().join("split");
     let mut t = Trainer::new(c.clone(), options(&split, false, Some(1))).unwrap();
