@@ -22,7 +22,7 @@ use volux_model::profile::{AlreadyRunning, Phase, PhaseTime, Profiler};
 use crate::config::TrainConfig;
 use crate::metrics::{median, peak_rss_mib};
 use crate::schedule::{ActiveTerms, Stage};
-use crate::step::generator_wants;
+use crate::step::{generator_wants, side_by_side_on};
 use crate::training_loop::{TrainError, TrainOptions, Trainer};
 
 mod discriminators;
@@ -132,8 +132,8 @@ pub struct BenchReport {
     /// The matmul peak, FLOP/s, and the side it was measured at.
     pub gemm_peak: f64,
     pub gemm_side: usize,
-    /// Whether the step's parts ran in turn.
-    pub in_turn: bool,
+    /// Whether the step's parts ran side by side ([`side_by_side_on`]; not with `--in-turn`).
+    pub side_by_side: bool,
     /// Each active discriminator timed alone, after the steps.
     pub discriminators: Vec<DiscriminatorTiming>,
 }
@@ -194,19 +194,19 @@ impl BenchReport {
         );
         if self.r1_interval > 0 {
             s += &format!(
-                "- R1 runs on 1 step in {}; its row is the discriminator step's time on that \
-                 step less the median of the others'\n",
+                "- R1 runs on 1 step in {}; its row is the time of the phase holding the \
+                 discriminator step on that step less its median on the others\n",
                 self.r1_interval
             );
         }
-        s += if self.in_turn {
-            "- the step's parts ran in turn (`--in-turn`): training runs the discriminators side \
-             by side on the CPU's threads, and the generator's backward pass beside the \
-             discriminator step; each discriminator is timed alone in the second table\n"
-        } else {
-            "- the discriminators run side by side on the CPU's threads, and the generator's \
+        s += if self.side_by_side {
+            "- the discriminators ran side by side on the CPU's threads, and the generator's \
              backward pass beside the discriminator step (`--in-turn` times them apart); each \
              discriminator is timed alone in the second table\n"
+        } else {
+            "- the step's parts ran in turn (`--in-turn`, a GPU, or discriminators too large to \
+             gain from running side by side); each discriminator is timed alone in the second \
+             table\n"
         };
         s += "\n| phase | median ms | share of step | GFLOP | counted | GFLOP/s | % of peak |\n";
         s += "|---|---|---|---|---|---|---|\n";
@@ -394,6 +394,7 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
         },
     )?;
     trainer.set_in_turn(options.in_turn);
+    let side_by_side = !options.in_turn && side_by_side_on(trainer.device(), &config);
     let g_params = trainer.generator().num_params();
     let d_params = trainer.discriminators().num_params();
     let flops = phase_flops(&config, active, g_params, d_params);
@@ -477,7 +478,7 @@ pub fn run(config: TrainConfig, options: &BenchOptions) -> Result<BenchReport, B
         peak_rss_mib: peak_rss_mib(),
         gemm_peak: gemm,
         gemm_side: options.gemm_side,
-        in_turn: options.in_turn,
+        side_by_side,
         discriminators: alone,
     })
 }

@@ -23,6 +23,7 @@ use rayon::prelude::*;
 use volux_data::batch::BatchTensors;
 use volux_model::discriminator::Discriminator;
 use volux_model::flex_extension::{Route, route};
+use volux_model::flops;
 use volux_model::generated::GeneratorWants;
 use volux_model::generator::{Generator, GeneratorError};
 use volux_model::light_lookup::Lighting;
@@ -30,6 +31,7 @@ use volux_model::pose::Pose;
 use volux_model::presets::{ByRole, DiscriminatorRole};
 use volux_model::profile::{self, Phase as ProfilePhase};
 
+use crate::config::TrainConfig;
 use crate::losses::{
     LossWeights, discriminator_loss, generator_loss, generator_loss_gradient, lazy_r1, path_loss,
     real_shading_condition, shading_condition_lo,
@@ -295,10 +297,26 @@ fn side_by_side<T: Sync, R: Send>(
     }
 }
 
-/// Whether a step on `device` runs its independent parts side by side: on the CPU's threads
-/// (flex, with or without autodiff), not on a GPU, which gains nothing from it.
-pub fn side_by_side_on(device: &Device) -> bool {
-    !matches!(route(device), Route::Other)
+/// The largest discriminator forward pass (FLOPs, at the training batch) for which a step
+/// runs its parts side by side. Small discriminators are many small operations that leave
+/// two cores partly idle, and two at once fill them (the quickstart's, 1-1.5 GFLOP: 1.3x on
+/// the step); large ones already fill both cores operation by operation, and two at once only
+/// share the caches and add their working sets (`paper128`'s, 66-127 GFLOP: its
+/// discriminator and backward phases 1.08x slower, peak memory 11.6 to 14.5 GiB). The
+/// threshold sits between the two measured sizes (docs/performance.md).
+pub const SIDE_BY_SIDE_MAX_FLOPS: f64 = 10e9;
+
+/// Whether a step of `config` on `device` runs its independent parts side by side: on the
+/// CPU's threads (flex, with or without autodiff; a GPU gains nothing from it), when the
+/// largest discriminator forward pass at the training batch is at most
+/// [`SIDE_BY_SIDE_MAX_FLOPS`].
+pub fn side_by_side_on(device: &Device, config: &TrainConfig) -> bool {
+    let largest = DiscriminatorRole::ALL
+        .into_iter()
+        .filter_map(|role| config.model.discriminator(role).ok())
+        .map(|d| flops::discriminator(&d, config.train.batch))
+        .fold(0.0, f64::max);
+    !matches!(route(device), Route::Other) && largest <= SIDE_BY_SIDE_MAX_FLOPS
 }
 
 /// One discriminator's part of the discriminator phase.
@@ -697,6 +715,18 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// Small discriminators run side by side on the CPU, the paper's in turn.
+    #[test]
+    fn small_discriminators_run_side_by_side_and_large_ones_in_turn() {
+        let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
+        let device = Device::flex().autodiff();
+        let quickstart = TrainConfig::load(&configs.join("quickstart.toml")).unwrap();
+        assert!(side_by_side_on(&device, &quickstart));
+        assert!(side_by_side_on(&Device::flex(), &quickstart));
+        let celeba = TrainConfig::load(&configs.join("celeba128.toml")).unwrap();
+        assert!(!side_by_side_on(&device, &celeba));
     }
 
     /// The discriminators see what the step hands them: the reals' shading brought to the

@@ -392,7 +392,7 @@ impl Trainer {
                 .then_some((c.train.r1_gamma, interval)),
             lr_g: c.train.lr_g,
             lr_d: c.train.lr_d,
-            side_by_side: !self.in_turn && side_by_side_on(&self.device),
+            side_by_side: !self.in_turn && side_by_side_on(&self.device, c),
             poison: self
                 .poisoned
                 .iter()
