@@ -678,15 +678,17 @@ fn train_bench_writes_a_per_phase_table_for_stage_2() {
         "mapping",
         "NeIIF field + normals",
         "relighting net",
-        "D_P forward",
-        "generator backward",
-        "discriminator step",
+        "discriminators on fakes + pullbacks",
+        "generator backward + discriminator step (side by side)",
+        "discriminator Adam",
         "whole step",
         "matmul peak",
+        "Each discriminator alone",
+        "D_P (relit vs photo)",
     ] {
         assert!(written.contains(row), "{row} missing:\n{written}");
     }
-    assert!(t.contains("D_S forward"), "{t}");
+    assert!(t.contains("D_S (relit, D, S)"), "{t}");
     let bad = volux(&[
         "train",
         "bench",

@@ -27,9 +27,9 @@ pub struct TrainCommand {
 #[derive(Debug, Subcommand)]
 pub enum TrainSubcommand {
     /// Time real training steps of a config phase by phase (mapping, field, compositing,
-    /// upsampler, relighting, each discriminator, backward, discriminator step, R1) beside
-    /// their FLOPs and the machine's measured matmul peak; prints a markdown table and writes
-    /// it to a file.
+    /// upsampler, relighting, the discriminators on the fakes, backward, discriminator step,
+    /// R1) beside their FLOPs and the machine's measured matmul peak, then each discriminator
+    /// alone; prints markdown tables and writes them to a file.
     Bench(BenchArgs),
 }
 

@@ -8,6 +8,10 @@
 //! is not measured; the measured steps start at step `r1_interval`, so the first of them runs
 //! R1 and the others do not, as in training. Every step trains at the stage's first image
 //! count, so the stage, fade-in and active terms stay those of the stage's start.
+//!
+//! Where a step runs its parts side by side ([`side_by_side_on`]) those parts share a row;
+//! [`BenchOptions::in_turn`] times them apart, and each discriminator is also timed alone
+//! after the steps (`discriminators`).
 
 use std::path::PathBuf;
 use std::time::Instant;
