@@ -108,8 +108,9 @@ pub struct Trainer {
     fake_poses: FakePoses,
     /// The light evaluation of `[output] eval_kimg`, when one is attached.
     evaluator: Option<Box<dyn ProgressEvaluator>>,
-    /// Run a step's independent parts in turn even on the CPU ([`Trainer::set_in_turn`]).
-    in_turn: bool,
+    /// Whether steps run their independent parts side by side: [`side_by_side_on`] this
+    /// config and device, unless [`Trainer::set_in_turn`] asked for them in turn.
+    side_by_side: bool,
 }
 
 /// The `purpose` of [`derived_seed`] for the fakes' camera draws (latents use `0..batch`, the
@@ -238,6 +239,7 @@ impl Trainer {
         let metrics_path = options.out.join(run_folder::METRICS);
         let metrics =
             MetricsLog::open(&metrics_path, state.step).map_err(|e| io_error(&metrics_path, e))?;
+        let side_by_side = side_by_side_on(&device, &config);
         Ok(Trainer {
             config,
             options,
@@ -253,7 +255,7 @@ impl Trainer {
             poisoned: Vec::new(),
             fake_poses,
             evaluator: None,
-            in_turn: false,
+            side_by_side,
         })
     }
 
@@ -295,7 +297,7 @@ impl Trainer {
     /// beside the discriminator phase) in turn instead of side by side on the CPU's threads:
     /// the same results, slower, with each part's time its own (the benchmark's `--in-turn`).
     pub fn set_in_turn(&mut self, in_turn: bool) {
-        self.in_turn = in_turn;
+        self.side_by_side = !in_turn && side_by_side_on(&self.device, &self.config);
     }
 
     /// Places the run at `step` with `images` seen, without training (benchmarks): the next
@@ -392,7 +394,7 @@ impl Trainer {
                 .then_some((c.train.r1_gamma, interval)),
             lr_g: c.train.lr_g,
             lr_d: c.train.lr_d,
-            side_by_side: !self.in_turn && side_by_side_on(&self.device, c),
+            side_by_side: self.side_by_side,
             poison: self
                 .poisoned
                 .iter()

@@ -140,15 +140,31 @@ fn minibatch_std_input_gradient_matches_autodiff() {
     }
 }
 
-#[test]
-fn input_gradient_matches_autodiff() {
-    // In f32 (what training runs) and in f64 (where 1e-9 leaves no room for a missing
-    // term, e.g. the minibatch std's cross-sample one, whose share is small).
+/// Asserts `got` within `tolerance` of `want`'s largest magnitude (which must be non-zero).
+fn assert_close(got: &[f64], want: &[f64], tolerance: f64, what: &str) {
+    let scale = want.iter().fold(0f64, |m, v| m.max(v.abs()));
+    assert!(scale > 0.0, "{what}: all zero");
+    let err = got
+        .iter()
+        .zip(want)
+        .fold(0f64, |m, (a, b)| m.max((a - b).abs()));
+    assert!(
+        err < tolerance * scale,
+        "{what}: max error {err:e}, largest {scale}"
+    );
+}
+
+/// In f32 (what training runs) and in f64 (where 1e-9 leaves no room for a missing term,
+/// e.g. the minibatch std's cross-sample one, whose share is small): `check(d, x, rng, what)`
+/// for batches 8 and 4 (two groups, one group of 4) and 2, 1 (groups smaller than 4).
+fn for_each_batch(
+    seed: u64,
+    check: impl Fn(&Discriminator, Tensor<4>, &mut SplitMix64, f64, &str),
+) {
     let device = Device::flex().autodiff();
     for (dtype, tolerance) in [(DType::F32, 1e-4), (DType::F64, 1e-9)] {
-        let d = tiny(&device, 3, dtype);
-        let mut rng = SplitMix64::new(4);
-        // Batches 8 and 4 (two groups, one group of 4) and 2, 1 (groups smaller than 4).
+        let d = tiny(&device, seed, dtype);
+        let mut rng = SplitMix64::new(seed + 1);
         for batch in [8, 4, 2, 1] {
             let shape = [batch, 3, 16, 16];
             let x = tensor(
@@ -157,26 +173,29 @@ fn input_gradient_matches_autodiff() {
                 &device,
                 dtype,
             );
-            let x_leaf = x.clone().require_grad();
-            let logits = d.forward(x_leaf.clone());
-            let grads = logits.clone().sum().backward();
-            let want = to_f64_vec(x_leaf.grad(&grads).unwrap());
-            let (logits2, grad) = d.input_gradient(x);
-            assert_eq!(grad.dims(), shape);
-            assert_eq!(to_f64_vec(logits), to_f64_vec(logits2));
-            let got = to_f64_vec(grad);
-            let scale = want.iter().fold(0f64, |m, v| m.max(v.abs()));
-            assert!(scale > 0.0);
-            let err = got
-                .iter()
-                .zip(&want)
-                .fold(0f64, |m, (a, b)| m.max((a - b).abs()));
-            assert!(
-                err < tolerance * scale,
-                "{dtype:?} batch {batch}: max error {err:e}, largest {scale}"
+            check(
+                &d,
+                x,
+                &mut rng,
+                tolerance,
+                &format!("{dtype:?} batch {batch}"),
             );
         }
     }
+}
+
+#[test]
+fn input_gradient_matches_autodiff() {
+    for_each_batch(3, |d, x, _, tolerance, what| {
+        let x_leaf = x.clone().require_grad();
+        let logits = d.forward(x_leaf.clone());
+        let grads = logits.clone().sum().backward();
+        let want = to_f64_vec(x_leaf.grad(&grads).unwrap());
+        let (logits2, grad) = d.input_gradient(x.clone());
+        assert_eq!(grad.dims(), x.dims());
+        assert_eq!(to_f64_vec(logits), to_f64_vec(logits2));
+        assert_close(&to_f64_vec(grad), &want, tolerance, what);
+    });
 }
 
 /// The pullback of one forward pass gives `sum_b c_b d logit_b / d x` for any cotangent `c`
@@ -184,52 +203,39 @@ fn input_gradient_matches_autodiff() {
 /// the weights' gradient of a plain forward.
 #[test]
 fn pullback_gives_the_input_gradient_of_any_cotangent() {
-    let device = Device::flex().autodiff();
-    for (dtype, tolerance) in [(DType::F32, 1e-4), (DType::F64, 1e-9)] {
-        let d = tiny(&device, 5, dtype);
-        let mut rng = SplitMix64::new(6);
-        for batch in [8, 4, 2, 1] {
-            let shape = [batch, 3, 16, 16];
-            let x = tensor(
-                normals(&mut rng, shape.iter().product()),
-                shape,
-                &device,
-                dtype,
-            );
-            let c = tensor(normals(&mut rng, batch), [batch, 1], &device, dtype);
-            let x_leaf = x.clone().require_grad();
-            let logits = d.forward(x_leaf.clone());
-            let grads = (logits.clone() * c.clone()).sum().backward();
-            let want = to_f64_vec(x_leaf.grad(&grads).unwrap());
-            let w = d.blocks[0].conv0.weight.val();
-            let want_w = to_f64_vec(w.grad(&grads).unwrap());
+    for_each_batch(5, |d, x, rng, tolerance, what| {
+        let batch = x.dims()[0];
+        let c = Tensor::<2>::from_data(
+            TensorData::new(normals(rng, batch), [batch, 1]),
+            (&x.device(), x.dtype()),
+        );
+        let x_leaf = x.clone().require_grad();
+        let logits = d.forward(x_leaf.clone());
+        let grads = (logits.clone() * c.clone()).sum().backward();
+        let want = to_f64_vec(x_leaf.grad(&grads).unwrap());
+        let w = d.blocks[0].conv0.weight.val();
+        let want_w = to_f64_vec(w.grad(&grads).unwrap());
 
-            let (logits2, pullback) = d.forward_with_pullback(x);
-            assert_eq!(to_f64_vec(logits), to_f64_vec(logits2.clone()));
-            let grad = pullback.input_gradient(c.clone());
-            assert_eq!(grad.dims(), shape);
-            assert!(!grad.is_require_grad(), "the pullback is a constant");
-            let close = |got: Vec<f64>, want: &[f64], what: &str| {
-                let scale = want.iter().fold(0f64, |m, v| m.max(v.abs()));
-                assert!(scale > 0.0);
-                let err = got
-                    .iter()
-                    .zip(want)
-                    .fold(0f64, |m, (a, b)| m.max((a - b).abs()));
-                assert!(
-                    err < tolerance * scale,
-                    "{dtype:?} batch {batch} {what}: max error {err:e}, largest {scale}"
-                );
-            };
-            close(to_f64_vec(grad), &want, "input gradient");
-            let grads = (logits2 * c).sum().backward();
-            close(
-                to_f64_vec(w.grad(&grads).unwrap()),
-                &want_w,
-                "weight gradient",
-            );
-        }
-    }
+        let (logits2, pullback) = d.forward_with_pullback(x.clone());
+        assert_eq!(to_f64_vec(logits), to_f64_vec(logits2.clone()));
+        let grad = pullback.input_gradient(c.clone());
+        assert_eq!(grad.dims(), x.dims());
+        assert!(!grad.is_require_grad(), "the pullback is a constant");
+        assert_close(
+            &to_f64_vec(grad),
+            &want,
+            tolerance,
+            &format!("{what} input gradient"),
+        );
+        let grads = (logits2 * c).sum().backward();
+        let got_w = to_f64_vec(w.grad(&grads).unwrap());
+        assert_close(
+            &got_w,
+            &want_w,
+            tolerance,
+            &format!("{what} weight gradient"),
+        );
+    });
 }
 
 #[test]
