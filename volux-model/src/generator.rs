@@ -142,15 +142,14 @@ impl GeneratorConfig {
             3 + neiif.feature_dim(),
             self.upsampler_channels,
             blocks,
-        )
-        .init(device);
-        let relighting = RelightingConfig::new(self.upsampler_channels - 3)
+        );
+        let relighting = RelightingConfig::new(upsampler.output_channels() - 3)
             .with_channels(self.relighting_channels.clone())
             .init(device);
         Ok(Generator {
             mapping: self.mapping.init(device),
             neiif,
-            upsampler,
+            upsampler: upsampler.init(device),
             relighting,
             renderer: self.renderer.clone(),
             volume_resolution: self.volume_resolution,

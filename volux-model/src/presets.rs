@@ -119,9 +119,18 @@ impl Preset {
         }
     }
 
-    /// The sizes of one discriminator.
+    /// The sizes of one discriminator of the preset's generator.
     pub fn discriminator(self, role: DiscriminatorRole) -> DiscriminatorConfig {
-        let g = self.generator();
+        self.discriminator_for(role, &self.generator())
+    }
+
+    /// The sizes of one discriminator of the preset's width for the images of `g` (a
+    /// generator of this preset with, say, another volume resolution).
+    pub fn discriminator_for(
+        self,
+        role: DiscriminatorRole,
+        g: &GeneratorConfig,
+    ) -> DiscriminatorConfig {
         let (channels, resolution) = match role {
             DiscriminatorRole::AlbedoLow => (3, g.volume_resolution),
             DiscriminatorRole::AlbedoHigh => (3, g.output_resolution),

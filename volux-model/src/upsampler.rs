@@ -49,6 +49,16 @@ pub struct Upsampler {
 }
 
 impl UpsamplerConfig {
+    /// Channels of the output, albedo first: the blocks' `channels`, or the input's when there
+    /// are no blocks (the output resolution is the volume's, and the input passes through).
+    pub fn output_channels(&self) -> usize {
+        if self.blocks == 0 {
+            self.in_channels
+        } else {
+            self.channels
+        }
+    }
+
     /// An upsampler with freshly initialised parameters on `device`.
     pub fn init(&self, device: &Device) -> Upsampler {
         assert!(

@@ -52,6 +52,17 @@ pub const MAX_GRID_SEEDS: usize = 64;
 /// in memory (a batch of 24 at 256x256 is about 100 MiB), and 10^12 aborted on allocation.
 pub const MAX_PREFETCH: usize = 16;
 
+/// The most layers `[model] mapping_layers` may give (StyleGAN2 uses 8, EG3D 2).
+pub const MAX_MAPPING_LAYERS: usize = 32;
+
+/// The largest `[model] d_channel_max`: StyleGAN2's largest configs use 512; a 3x3
+/// convolution of 4096 channels already holds 600 MB of weights.
+pub const MAX_D_CHANNEL_MAX: usize = 4096;
+
+/// The largest `[model] d_channel_base` (StyleGAN2 uses 16384 or 32768; channels are capped
+/// by `d_channel_max` anyway).
+pub const MAX_D_CHANNEL_BASE: usize = 1 << 22;
+
 /// `[model]`: a preset size, optionally with fewer or more samples per ray.
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
@@ -87,6 +98,24 @@ pub struct ModelConfig {
     /// ablation).
     #[serde(default)]
     pub shading: Option<ShadingKind>,
+    /// Fully connected layers of the mapping network `z -> w` (the preset's 8, StyleGAN2's, if
+    /// absent; EG3D uses 2).
+    #[serde(default)]
+    pub mapping_layers: Option<usize>,
+    /// Side of the volume-rendered images (the preset's if absent: 32 for `small`, 64 for the
+    /// paper's); the output resolution must be it times a power of two (1 included: no
+    /// upsampling blocks), and `[data] volume_resolution` must equal it.
+    #[serde(default)]
+    pub volume_resolution: Option<usize>,
+    /// Every discriminator's `channel_base`: feature channels at resolution `r` are
+    /// `min(d_channel_base / r, d_channel_max)` (StyleGAN2's `cbase`; the preset's if absent:
+    /// 2048 for `small`, 32768 for the paper's).
+    #[serde(default)]
+    pub d_channel_base: Option<usize>,
+    /// Every discriminator's `channel_max` (StyleGAN2's `cmax`; the preset's if absent: 128 for
+    /// `small`, 512 for the paper's).
+    #[serde(default)]
+    pub d_channel_max: Option<usize>,
 }
 
 /// The `[model] shading` key.
@@ -170,6 +199,23 @@ impl ModelConfig {
         if let Some(kind) = self.shading {
             g.renderer.shading = kind.into();
         }
+        if let Some(v) = self.volume_resolution {
+            if !(v >= 4 && v <= g.output_resolution) {
+                return Err(format!(
+                    "model.volume_resolution = {v} must be in 4..={} (the output's)",
+                    g.output_resolution
+                ));
+            }
+            g.volume_resolution = v;
+        }
+        if let Some(n) = self.mapping_layers {
+            if !(1..=MAX_MAPPING_LAYERS).contains(&n) {
+                return Err(format!(
+                    "model.mapping_layers = {n} must be in 1..={MAX_MAPPING_LAYERS}"
+                ));
+            }
+            g.mapping.layers = n;
+        }
         // Compositing needs two samples per ray: stratified ones, or importance ones placed
         // by a proposal.
         let composited = if g.renderer.proposal > 0 {
@@ -190,7 +236,24 @@ impl ModelConfig {
 
     /// The sizes of one discriminator.
     pub fn discriminator(&self, role: DiscriminatorRole) -> Result<DiscriminatorConfig, String> {
-        Ok(self.preset()?.discriminator(role))
+        let mut d = self.preset()?.discriminator_for(role, &self.generator()?);
+        if let Some(n) = self.d_channel_base {
+            if !(1..=MAX_D_CHANNEL_BASE).contains(&n) {
+                return Err(format!(
+                    "model.d_channel_base = {n} must be in 1..={MAX_D_CHANNEL_BASE}"
+                ));
+            }
+            d.channel_base = n;
+        }
+        if let Some(n) = self.d_channel_max {
+            if !(1..=MAX_D_CHANNEL_MAX).contains(&n) {
+                return Err(format!(
+                    "model.d_channel_max = {n} must be in 1..={MAX_D_CHANNEL_MAX}"
+                ));
+            }
+            d.channel_max = n;
+        }
+        Ok(d)
     }
 }
 

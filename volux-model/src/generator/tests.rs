@@ -41,11 +41,10 @@ fn check_grads(g: &Generator, grads: &burn::tensor::Gradients, parts: &[&str]) {
         (
             "upsampler",
             vec![
-                g.upsampler.blocks[0]
-                    .conv1
-                    .weight
-                    .val()
-                    .grad(grads)
+                g.upsampler
+                    .blocks
+                    .first()
+                    .and_then(|b| b.conv1.weight.val().grad(grads))
                     .map(to_f32_vec),
             ],
         ),
@@ -121,6 +120,39 @@ fn small_preset_gives_every_output_and_a_full_backward_pass() {
         &loss.backward(),
         &["mapping", "neiif", "upsampler", "relighting"],
     );
+}
+
+#[test]
+fn a_volume_at_the_output_resolution_needs_no_upsampling_blocks() {
+    // Output side = volume side: the upsampler has no blocks and passes `[A_lo, F_lo]`
+    // through, so the relighting network takes the renderer's features.
+    let device = Device::flex().autodiff();
+    let mut config = GeneratorConfig::small();
+    config.volume_resolution = 16;
+    config.output_resolution = 16;
+    let g = config.init(&device).unwrap();
+    assert!(g.upsampler.blocks.is_empty());
+    let z = Tensor::<2>::random([2, 128], Distribution::Normal(0.0, 1.0), &device);
+    let light = lighting(2, 1.0, &device);
+    let out = g
+        .forward(
+            z,
+            &[Pose::new(0.0, 0.0), Pose::new(0.4, -0.1)],
+            Some(&light),
+            [0.0; 3],
+            GeneratorWants::ALL,
+            None,
+            true,
+        )
+        .unwrap();
+    let (lo, hi) = (out.layers.albedo_lo.unwrap(), out.layers.albedo_hi.unwrap());
+    assert_eq!(hi.dims(), [2, 3, 16, 16]);
+    assert_eq!(to_f32_vec(lo.clone()), to_f32_vec(hi), "A_hi is A_lo");
+    let relit = out.layers.relit.unwrap();
+    assert_eq!(relit.dims(), [2, 3, 16, 16]);
+    let loss = relit.mean() + lo.mean();
+    assert!(loss.clone().into_scalar::<f32>().is_finite());
+    check_grads(&g, &loss.backward(), &["mapping", "neiif", "relighting"]);
 }
 
 #[test]

@@ -78,6 +78,50 @@ fn model_overrides_reach_the_generator() {
 }
 
 #[test]
+fn mapping_depth_and_discriminator_width_reach_the_networks() {
+    let c = load(TINY).unwrap();
+    assert_eq!(c.generator().mapping.layers, 8, "StyleGAN2's unless asked");
+    let d = c.model.discriminator(DiscriminatorRole::Photo).unwrap();
+    assert_eq!((d.channel_base, d.channel_max), (2048, 128), "the preset's");
+    let text = TINY.replace(
+        "\"small\"",
+        "\"small\"\nmapping_layers = 2\nd_channel_base = 4096\nd_channel_max = 256",
+    );
+    let c = load(&text).unwrap();
+    assert_eq!(c.generator().mapping.layers, 2);
+    for role in DiscriminatorRole::ALL {
+        let d = c.model.discriminator(role).unwrap();
+        assert_eq!((d.channel_base, d.channel_max), (4096, 256), "{role:?}");
+        // 4096 / 64 = 64 channels at 64x64, 256 from 16x16 down.
+        assert_eq!(d.channels_at(64), 64);
+        assert_eq!(d.channels_at(16), 256);
+    }
+    // The volume's side moves the discriminators that judge volume-resolution images.
+    let text = TINY
+        .replace("\"small\"", "\"small\"\nvolume_resolution = 64")
+        .replace("volume_resolution = 32", "volume_resolution = 64");
+    let c64 = load(&text).unwrap();
+    assert_eq!(c64.generator().volume_resolution, 64);
+    assert_eq!(c64.blocks(), 0, "no upsampling");
+    for (role, side) in [
+        (DiscriminatorRole::AlbedoLow, 64),
+        (DiscriminatorRole::Geometry, 64),
+        (DiscriminatorRole::Photo, 64),
+    ] {
+        assert_eq!(c64.model.discriminator(role).unwrap().resolution, side);
+    }
+    // Both change the networks' shapes, so a resumed run must match them.
+    let shapes = c.shapes();
+    for key in [
+        "mapping_layers = 2",
+        "d_channel_base = 4096",
+        "d_channel_max = 256",
+    ] {
+        assert!(shapes.contains(key), "{shapes}");
+    }
+}
+
+#[test]
 fn bad_configs_name_the_file_and_the_key() {
     let cases = [
         (
@@ -104,6 +148,30 @@ fn bad_configs_name_the_file_and_the_key() {
         (
             TINY.replace("\"small\"", "\"small\"\nshading = \"surfaces\""),
             "shading",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nvolume_resolution = 128"),
+            "model.volume_resolution = 128",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nvolume_resolution = 48"),
+            "output_resolution 64 must be volume_resolution 48 times a power of two",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nvolume_resolution = 16"),
+            "data.volume_resolution = 32 must equal",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nmapping_layers = 0"),
+            "model.mapping_layers = 0",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nd_channel_base = 0"),
+            "model.d_channel_base = 0",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nd_channel_max = 100000"),
+            "model.d_channel_max = 100000",
         ),
         (
             TINY.replace("resolution = 64", "resolution = 128"),
