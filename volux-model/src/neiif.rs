@@ -99,6 +99,10 @@ pub struct NeiifConfig {
     /// Radius of the sphere prior (world units; the head fits in the unit sphere).
     #[config(default = 0.5)]
     pub sphere_radius: f64,
+    /// Whether each octave of the positional encoding turns the point by its own fixed
+    /// rotation first (see [`crate::positional_encoding`]; the paper's is axis-aligned).
+    #[config(default = false)]
+    pub rotated_encoding: bool,
 }
 
 /// The field.
@@ -173,6 +177,7 @@ impl NeiifConfig {
         );
         let encoding = PositionalEncodingConfig::new()
             .with_frequencies(self.frequencies)
+            .with_rotated(self.rotated_encoding)
             .init();
         let layers = (0..self.layers)
             .map(|i| {
@@ -311,11 +316,7 @@ impl Neiif {
                     let v = (kernels.pullback)(u, y, bias);
                     u = batched_matmul(v, m.weight.swap_dims(1, 2));
                 }
-                // Feature c depends on coordinate c mod 3 alone.
-                let mut g = (u * deriv)
-                    .reshape([b, p, d / 3, 3])
-                    .sum_dim(2)
-                    .reshape([b, p, 3]);
+                let mut g = self.encoding.fold(u * deriv);
                 if let Some((_, grad)) = &prior {
                     g = g + grad.clone();
                 }

@@ -1,11 +1,19 @@
 //! Fourier positional encoding of 3D points (NeRF; paper section 3.2): `x -> [x, sin(2^k pi x),
 //! cos(2^k pi x)]` for `k = 0..frequencies`, the NeIIF's input.
+//!
+//! Optionally each octave first turns the point by its own fixed rotation `R_k`
+//! (`x -> [x, sin(2^k pi R_k x), cos(2^k pi R_k x)]`), so that no octave's planes of constant
+//! phase line up with the world's axes or with another octave's: with the axis-aligned
+//! encoding a field can build horizontal structure out of `sin(2^k pi y)` alone, and on a
+//! small volume the top octave then shows as bands of constant height across the whole head
+//! (docs/RESULTS.md, "5 octaves over the whole 30 minutes"). The rotations are fixed functions
+//! of `k` ([`octave_rotation`]), not parameters.
 
 use std::f64::consts::PI;
 
 use burn::config::Config;
 use burn::module::Module;
-use burn::tensor::Tensor;
+use burn::tensor::{Tensor, TensorData};
 
 /// Configuration of a [`PositionalEncoding`].
 #[derive(Config, Debug)]
@@ -16,6 +24,10 @@ pub struct PositionalEncodingConfig {
     /// Whether the raw coordinates come first in the output.
     #[config(default = true)]
     pub include_input: bool,
+    /// Whether each octave turns the point by its own fixed rotation first (the paper's
+    /// encoding is axis-aligned: false).
+    #[config(default = false)]
+    pub rotated: bool,
 }
 
 /// The encoding; it has no parameters.
@@ -23,6 +35,7 @@ pub struct PositionalEncodingConfig {
 pub struct PositionalEncoding {
     pub frequencies: usize,
     pub include_input: bool,
+    pub rotated: bool,
 }
 
 impl PositionalEncodingConfig {
@@ -30,8 +43,65 @@ impl PositionalEncodingConfig {
         PositionalEncoding {
             frequencies: self.frequencies,
             include_input: self.include_input,
+            rotated: self.rotated,
         }
     }
+}
+
+/// The largest share of a world axis in any direction of a rotated octave: the rotation of
+/// each octave is drawn again until no direction it measures lies within 25.8 degrees
+/// (`acos 0.9`) of an axis.
+const MAX_AXIS_COSINE: f64 = 0.9;
+
+/// The fixed rotation of octave `k`: the first uniformly distributed rotation (Shoemake's
+/// unit quaternion from three uniform numbers, drawn from `splitmix64` seeded by `k`) whose
+/// rows all lie off the axes ([`MAX_AXIS_COSINE`]), so every build and every platform turns
+/// octave `k` the same way. Row `i` is the direction whose phase the encoding's `i`-th
+/// coordinate of that octave measures.
+pub fn octave_rotation(k: usize) -> [[f64; 3]; 3] {
+    let mut state = 0x9e37_79b9_7f4a_7c15_u64 ^ (k as u64).wrapping_mul(0xd1b5_4a32_d192_ed03);
+    let mut uniform = || {
+        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^= z >> 31;
+        (z >> 11) as f64 / (1u64 << 53) as f64
+    };
+    loop {
+        let r = quaternion_rotation(uniform(), uniform(), uniform());
+        if r.iter().flatten().all(|v| v.abs() < MAX_AXIS_COSINE) {
+            return r;
+        }
+    }
+}
+
+/// Shoemake's uniform rotation from three numbers uniform in `[0, 1)`.
+fn quaternion_rotation(u1: f64, u2: f64, u3: f64) -> [[f64; 3]; 3] {
+    let (a, b) = ((1.0 - u1).sqrt(), u1.sqrt());
+    let (x, y, z, w) = (
+        a * (2.0 * PI * u2).sin(),
+        a * (2.0 * PI * u2).cos(),
+        b * (2.0 * PI * u3).sin(),
+        b * (2.0 * PI * u3).cos(),
+    );
+    [
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - z * w),
+            2.0 * (x * z + y * w),
+        ],
+        [
+            2.0 * (x * y + z * w),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - x * w),
+        ],
+        [
+            2.0 * (x * z - y * w),
+            2.0 * (y * z + x * w),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
+    ]
 }
 
 impl PositionalEncoding {
@@ -40,25 +110,43 @@ impl PositionalEncoding {
         3 * usize::from(self.include_input) + 6 * self.frequencies
     }
 
+    /// Octave `k`'s coordinates of `x: [points, 3]`, scaled by its frequency: `2^k pi x`, or
+    /// `2^k pi R_k x` when rotated.
+    fn octave(&self, x: &Tensor<2>, k: usize) -> Tensor<2> {
+        let f = PI * 2f64.powi(k as i32);
+        if !self.rotated {
+            return x.clone().mul_scalar(f);
+        }
+        let r = octave_rotation(k);
+        // x R^T, with the frequency folded in.
+        let rt: Vec<f32> = (0..3)
+            .flat_map(|j| (0..3).map(move |i| (f * r[i][j]) as f32))
+            .collect();
+        x.clone()
+            .matmul(Tensor::from_data(TensorData::new(rt, [3, 3]), &x.device()))
+    }
+
     /// `[points, 3] -> [points, output_dim]`, laid out as `[x, sin(pi x), cos(pi x),
-    /// sin(2 pi x), cos(2 pi x), ...]` with each block holding the three coordinates.
+    /// sin(2 pi x), cos(2 pi x), ...]` with each block holding the three coordinates (of
+    /// `R_k x` when rotated).
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
         let mut parts = Vec::with_capacity(1 + 2 * self.frequencies);
         if self.include_input {
             parts.push(x.clone());
         }
         for k in 0..self.frequencies {
-            let scaled = x.clone().mul_scalar(PI * 2f64.powi(k as i32));
+            let scaled = self.octave(&x, k);
             parts.push(scaled.clone().sin());
             parts.push(scaled.cos());
         }
         Tensor::cat(parts, 1)
     }
 
-    /// The encoding and its derivative: `[points, 3] -> ([points, output_dim],
-    /// [points, output_dim])`, where column `c` of the second is `d enc_c / d x_{c mod 3}`.
-    /// Every feature depends on one coordinate only (column `c` on coordinate `c mod 3`), so
-    /// this diagonal is the whole Jacobian: the NeIIF's reverse sweep ends with it.
+    /// The encoding and its derivative along its own coordinate: `[points, 3] -> ([points,
+    /// output_dim], [points, output_dim])`, where column `c` of the second is `d enc_c / d u`
+    /// for the coordinate `u` that feature `c` is a function of (coordinate `c mod 3` of `x`,
+    /// or of `R_k x` when rotated). [`Self::fold`] turns a cotangent times this into the
+    /// gradient in `x`: the NeIIF's reverse sweep ends with the two.
     pub fn forward_with_derivative(&self, x: Tensor<2>) -> (Tensor<2>, Tensor<2>) {
         let [points, _] = x.dims();
         let device = x.device();
@@ -70,7 +158,7 @@ impl PositionalEncoding {
         }
         for k in 0..self.frequencies {
             let f = PI * 2f64.powi(k as i32);
-            let scaled = x.clone().mul_scalar(f);
+            let scaled = self.octave(&x, k);
             let (sin, cos) = (scaled.clone().sin(), scaled.cos());
             derivs.push(cos.clone().mul_scalar(f));
             derivs.push(sin.clone().mul_scalar(-f));
@@ -78,6 +166,31 @@ impl PositionalEncoding {
             parts.push(cos);
         }
         (Tensor::cat(parts, 1), Tensor::cat(derivs, 1))
+    }
+
+    /// The gradient in `x`, `[b, p, 3]`, from `v = u * derivative`, `[b, p, output_dim]`
+    /// (a cotangent `u` of the encoding times [`Self::forward_with_derivative`]'s second
+    /// output). Axis-aligned, feature `c` depends on coordinate `c mod 3` alone and the
+    /// gradient sums the blocks; rotated, block `k` is turned back by `R_k^T`, a product with
+    /// the stacked rotations `[output_dim, 3]`.
+    pub fn fold(&self, v: Tensor<3>) -> Tensor<3> {
+        let [b, p, d] = v.dims();
+        if !self.rotated {
+            return v.reshape([b, p, d / 3, 3]).sum_dim(2).reshape([b, p, 3]);
+        }
+        let mut stacked = Vec::with_capacity(d * 3);
+        if self.include_input {
+            stacked.extend([1.0f32, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        }
+        for k in 0..self.frequencies {
+            let r = octave_rotation(k);
+            let rows: Vec<f32> = r.iter().flatten().map(|&v| v as f32).collect();
+            // The sine block, then the cosine block: both measure the phase of R_k x.
+            stacked.extend(&rows);
+            stacked.extend(&rows);
+        }
+        let m = Tensor::<2>::from_data(TensorData::new(stacked, [d, 3]), &v.device());
+        v.reshape([b * p, d]).matmul(m).reshape([b, p, 3])
     }
 }
 
@@ -118,17 +231,27 @@ mod tests {
         }
     }
 
-    #[test]
-    fn derivative_matches_central_differences() {
+    /// The Jacobian `d enc_c / d x_j` from `forward_with_derivative` and `fold` (one-hot
+    /// cotangents), against central differences of `forward`.
+    fn check_jacobian(enc: &PositionalEncoding) {
         let device = Device::flex();
-        let enc = PositionalEncodingConfig::new().with_frequencies(4).init();
         let x = [0.3f64, -0.45, 0.8];
         let at = |p: [f64; 3]| {
             let data: Vec<f32> = p.iter().map(|v| *v as f32).collect();
             Tensor::<2>::from_data(TensorData::new(data, [1, 3]), &device)
         };
+        let d = enc.output_dim();
         let (_, deriv) = enc.forward_with_derivative(at(x));
         let deriv = to_f32_vec(deriv);
+        // Row c of the Jacobian: fold a cotangent that is one at feature c.
+        let jacobian: Vec<Vec<f32>> = (0..d)
+            .map(|c| {
+                let mut v = vec![0f32; d];
+                v[c] = deriv[c];
+                let v = Tensor::<3>::from_data(TensorData::new(v, [1, 1, d]), &device);
+                to_f32_vec(enc.fold(v))
+            })
+            .collect();
         let h = 1e-3;
         for j in 0..3 {
             let (mut a, mut b) = (x, x);
@@ -136,16 +259,107 @@ mod tests {
             b[j] -= h;
             let fa = to_f32_vec(enc.forward(at(a)));
             let fb = to_f32_vec(enc.forward(at(b)));
-            for c in 0..enc.output_dim() {
+            for c in 0..d {
                 let fd = (f64::from(fa[c]) - f64::from(fb[c])) / (2.0 * h);
-                // Column c depends on coordinate c mod 3 alone.
-                let got = if c % 3 == j { f64::from(deriv[c]) } else { 0.0 };
+                let got = f64::from(jacobian[c][j]);
                 // Central differences of sin(8 pi x) with h = 1e-3 are good to ~1e-3 relative.
                 assert!(
                     (got - fd).abs() < 5e-3 * (1.0 + fd.abs()),
-                    "j {j} c {c}: {got} vs {fd}"
+                    "rotated {} j {j} c {c}: {got} vs {fd}",
+                    enc.rotated
                 );
             }
+        }
+    }
+
+    #[test]
+    fn derivative_matches_central_differences() {
+        let enc = PositionalEncodingConfig::new().with_frequencies(4).init();
+        check_jacobian(&enc);
+        // Axis-aligned, feature c depends on coordinate c mod 3 alone.
+        let (_, deriv) = enc.forward_with_derivative(Tensor::<2>::from_data(
+            TensorData::new(vec![0.3f32, -0.45, 0.8], [1, 3]),
+            &Device::flex(),
+        ));
+        let deriv = to_f32_vec(deriv);
+        for (c, &dc) in deriv.iter().enumerate() {
+            let mut v = vec![0f32; enc.output_dim()];
+            v[c] = dc;
+            let v = Tensor::<3>::from_data(
+                TensorData::new(v, [1, 1, enc.output_dim()]),
+                &Device::flex(),
+            );
+            let g = to_f32_vec(enc.fold(v));
+            for (j, gj) in g.iter().enumerate() {
+                assert_eq!(*gj, if j == c % 3 { dc } else { 0.0 }, "c {c} j {j}");
+            }
+        }
+    }
+
+    #[test]
+    fn rotated_derivative_matches_central_differences() {
+        let enc = PositionalEncodingConfig::new()
+            .with_frequencies(5)
+            .with_rotated(true)
+            .init();
+        check_jacobian(&enc);
+    }
+
+    #[test]
+    fn octave_rotations_are_proper_distinct_and_off_the_axes() {
+        let rotations: Vec<[[f64; 3]; 3]> = (0..16).map(octave_rotation).collect();
+        for (k, r) in rotations.iter().enumerate() {
+            for i in 0..3 {
+                for j in 0..3 {
+                    let dot: f64 = (0..3).map(|m| r[i][m] * r[j][m]).sum();
+                    let want = if i == j { 1.0 } else { 0.0 };
+                    assert!(
+                        (dot - want).abs() < 1e-12,
+                        "k {k}: R R^T [{i}][{j}] = {dot}"
+                    );
+                }
+            }
+            let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+                - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+                + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+            assert!((det - 1.0).abs() < 1e-12, "k {k}: det {det}");
+            // No direction within 25 degrees of a world axis.
+            let largest = r.iter().flatten().fold(0f64, |m, v| m.max(v.abs()));
+            assert!(largest < 0.9, "k {k}: a row is {largest} along an axis");
+        }
+        assert_eq!(octave_rotation(3), rotations[3], "a fixed function of k");
+        assert_ne!(rotations[0], rotations[1]);
+    }
+
+    #[test]
+    fn rotated_encoding_matches_the_formula_in_f64() {
+        let device = Device::flex();
+        let enc = PositionalEncodingConfig::new()
+            .with_frequencies(5)
+            .with_rotated(true)
+            .init();
+        let x = [0.1f64, -0.7, 0.35];
+        let data: Vec<f32> = x.iter().map(|v| *v as f32).collect();
+        let out = to_f32_vec(enc.forward(Tensor::<2>::from_data(
+            TensorData::new(data, [1, 3]),
+            &device,
+        )));
+        let mut want: Vec<f64> = x.to_vec();
+        for k in 0..5 {
+            let r = octave_rotation(k);
+            let f = PI * 2f64.powi(k as i32);
+            let u: Vec<f64> = (0..3)
+                .map(|i| f * (0..3).map(|j| r[i][j] * x[j]).sum::<f64>())
+                .collect();
+            want.extend(u.iter().map(|v| v.sin()));
+            want.extend(u.iter().map(|v| v.cos()));
+        }
+        assert_eq!(out.len(), want.len());
+        for (i, (got, w)) in out.iter().zip(&want).enumerate() {
+            assert!(
+                (f64::from(*got) - w).abs() < 2e-5,
+                "feature {i}: {got} vs {w}"
+            );
         }
     }
 

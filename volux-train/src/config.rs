@@ -102,6 +102,11 @@ pub struct ModelConfig {
     /// absent; EG3D uses 2).
     #[serde(default)]
     pub mapping_layers: Option<usize>,
+    /// The NeIIF's positional encoding: `axis-aligned` (the paper's; the default) or
+    /// `rotated` (each octave turns the point by its own fixed rotation first, so that no
+    /// octave's bands line up with the axes).
+    #[serde(default)]
+    pub encoding: Option<EncodingKind>,
     /// Side of the volume-rendered images (the preset's if absent: 32 for `small`, 64 for the
     /// paper's); the output resolution must be it times a power of two (1 included: no
     /// upsampling blocks), and `[data] volume_resolution` must equal it.
@@ -116,6 +121,14 @@ pub struct ModelConfig {
     /// `small`, 512 for the paper's).
     #[serde(default)]
     pub d_channel_max: Option<usize>,
+}
+
+/// The `[model] encoding` key.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EncodingKind {
+    AxisAligned,
+    Rotated,
 }
 
 /// The `[model] shading` key.
@@ -207,6 +220,9 @@ impl ModelConfig {
                 ));
             }
             g.volume_resolution = v;
+        }
+        if let Some(kind) = self.encoding {
+            g.neiif.rotated_encoding = kind == EncodingKind::Rotated;
         }
         if let Some(n) = self.mapping_layers {
             if !(1..=MAX_MAPPING_LAYERS).contains(&n) {
@@ -569,10 +585,14 @@ impl TrainConfig {
     }
 
     pub fn shapes(&self) -> String {
-        // `shading = "volume"` is the default written out: the same model as no key.
+        // `shading = "volume"` and `encoding = "axis-aligned"` are the defaults written out:
+        // the same model as no key.
         let mut model = self.model.clone();
         if model.shading == Some(ShadingKind::Volume) {
             model.shading = None;
+        }
+        if model.encoding == Some(EncodingKind::AxisAligned) {
+            model.encoding = None;
         }
         toml::to_string(&model).unwrap_or_default()
     }

@@ -110,6 +110,14 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
     ] {
         assert_eq!(c64.model.discriminator(role).unwrap().resolution, side);
     }
+    // The encoding: the paper's unless asked; part of what a resume must match.
+    assert!(!load(TINY).unwrap().generator().neiif.rotated_encoding);
+    for (key, rotated) in [("axis-aligned", false), ("rotated", true)] {
+        let text = TINY.replace("\"small\"", &format!("\"small\"\nencoding = \"{key}\""));
+        let c = load(&text).unwrap();
+        assert_eq!(c.generator().neiif.rotated_encoding, rotated);
+        assert_eq!(c.shapes() == load(TINY).unwrap().shapes(), !rotated);
+    }
     // Both change the networks' shapes, so a resumed run must match them.
     let shapes = c.shapes();
     for key in [
@@ -148,6 +156,10 @@ fn bad_configs_name_the_file_and_the_key() {
         (
             TINY.replace("\"small\"", "\"small\"\nshading = \"surfaces\""),
             "shading",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nencoding = \"rotate\""),
+            "encoding",
         ),
         (
             TINY.replace("\"small\"", "\"small\"\nvolume_resolution = 128"),
