@@ -137,19 +137,22 @@ impl GeneratorConfig {
         self.validate()?;
         let neiif = self.neiif.init(device);
         let blocks = (self.output_resolution / self.volume_resolution).trailing_zeros() as usize;
-        let upsampler = UpsamplerConfig::new(
+        let upsampler_config = UpsamplerConfig::new(
             self.mapping.w_dim,
             3 + neiif.feature_dim(),
             self.upsampler_channels,
             blocks,
         );
-        let relighting = RelightingConfig::new(upsampler.output_channels() - 3)
+        // The networks draw their initial weights in this order (NeIIF, upsampler,
+        // relighting, mapping): a run is a pure function of its seed only while it stays.
+        let upsampler = upsampler_config.init(device);
+        let relighting = RelightingConfig::new(upsampler_config.output_channels() - 3)
             .with_channels(self.relighting_channels.clone())
             .init(device);
         Ok(Generator {
             mapping: self.mapping.init(device),
             neiif,
-            upsampler: upsampler.init(device),
+            upsampler,
             relighting,
             renderer: self.renderer.clone(),
             volume_resolution: self.volume_resolution,
