@@ -213,7 +213,7 @@ impl ModelConfig {
             g.renderer.shading = kind.into();
         }
         if let Some(v) = self.volume_resolution {
-            if !(v >= 4 && v <= g.output_resolution) {
+            if !(4..=g.output_resolution).contains(&v) {
                 return Err(format!(
                     "model.volume_resolution = {v} must be in 4..={} (the output's)",
                     g.output_resolution

@@ -68,6 +68,22 @@ fn check_grads(g: &Generator, grads: &burn::tensor::Gradients, parts: &[&str]) {
     }
 }
 
+/// Every output of `g` for two latents at two poses, lit by [`lighting`] with `spike`.
+fn two_views_lit(g: &Generator, spike: f32, device: &Device) -> GeneratorOutput {
+    let z = Tensor::<2>::random([2, 128], Distribution::Normal(0.0, 1.0), device);
+    let light = lighting(2, spike, device);
+    g.forward(
+        z,
+        &[Pose::new(0.0, 0.0), Pose::new(0.4, -0.1)],
+        Some(&light),
+        [0.0; 3],
+        GeneratorWants::ALL,
+        None,
+        true,
+    )
+    .unwrap()
+}
+
 #[test]
 fn small_preset_gives_every_output_and_a_full_backward_pass() {
     let device = Device::flex().autodiff();
@@ -80,19 +96,7 @@ fn small_preset_gives_every_output_and_a_full_backward_pass() {
         Module::num_params(&g),
         "{counts:?}"
     );
-    let z = Tensor::<2>::random([2, 128], Distribution::Normal(0.0, 1.0), &device);
-    let light = lighting(2, 1e5, &device);
-    let out = g
-        .forward(
-            z,
-            &[Pose::new(0.0, 0.0), Pose::new(0.4, -0.1)],
-            Some(&light),
-            [0.0; 3],
-            GeneratorWants::ALL,
-            None,
-            true,
-        )
-        .unwrap();
+    let out = two_views_lit(&g, 1e5, &device);
     assert_eq!(out.opacity.dims(), [2, 1, 32, 32]);
     for (name, t, c) in [
         ("A_lo", &out.layers.albedo_lo, 3),
@@ -132,19 +136,7 @@ fn a_volume_at_the_output_resolution_needs_no_upsampling_blocks() {
     config.output_resolution = 16;
     let g = config.init(&device).unwrap();
     assert!(g.upsampler.blocks.is_empty());
-    let z = Tensor::<2>::random([2, 128], Distribution::Normal(0.0, 1.0), &device);
-    let light = lighting(2, 1.0, &device);
-    let out = g
-        .forward(
-            z,
-            &[Pose::new(0.0, 0.0), Pose::new(0.4, -0.1)],
-            Some(&light),
-            [0.0; 3],
-            GeneratorWants::ALL,
-            None,
-            true,
-        )
-        .unwrap();
+    let out = two_views_lit(&g, 1.0, &device);
     let (lo, hi) = (out.layers.albedo_lo.unwrap(), out.layers.albedo_hi.unwrap());
     assert_eq!(hi.dims(), [2, 3, 16, 16]);
     assert_eq!(to_f32_vec(lo.clone()), to_f32_vec(hi), "A_hi is A_lo");
