@@ -214,6 +214,13 @@ impl Generator {
         self.volume_resolution * self.upsampler.factor()
     }
 
+    /// Opens the first `alpha` octaves of the NeIIF's positional encoding (coarse to fine,
+    /// [`crate::positional_encoding`]); `None` opens all. The training schedule sets it before
+    /// each step, and a loaded generator takes the window of the images it was trained on.
+    pub fn set_octave_window(&mut self, alpha: Option<f64>) {
+        self.neiif.encoding.set_window(alpha);
+    }
+
     /// Renders the NeIIF of latents `w: [batch, w_dim]` along given rays `[batch, rays, 3]`
     /// (the low-resolution half of the generator, on any set of rays).
     pub fn render_rays(

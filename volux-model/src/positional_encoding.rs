@@ -8,6 +8,12 @@
 //! small volume the top octave then shows as bands of constant height across the whole head
 //! (docs/RESULTS.md, "5 octaves over the whole 30 minutes"). The rotations are fixed functions
 //! of `k` ([`octave_rotation`]), not parameters.
+//!
+//! Octaves can open coarse to fine (BARF, Lin et al. 2021): with a window `alpha` (octaves
+//! open, fractional), octave `k` is weighted by `(1 - cos(pi clamp(alpha - k, 0, 1))) / 2`, so
+//! a closed octave feeds the field zeros and one opening rises smoothly from 0 to 1. The
+//! training schedule sets the window (`[schedule] open_octaves`, `octave_fade_kimg`); it is
+//! state of the run, not a parameter, and is not saved with the weights.
 
 use std::f64::consts::PI;
 
@@ -36,6 +42,17 @@ pub struct PositionalEncoding {
     pub frequencies: usize,
     pub include_input: bool,
     pub rotated: bool,
+    /// Octaves open (BARF's `alpha`; fractional while one opens); `None`: all, the paper's
+    /// encoding. Set by the training schedule ([`Self::set_window`]).
+    #[module(skip)]
+    pub window: Option<f64>,
+}
+
+/// BARF's weight of octave `k` at window `alpha`: 0 while closed, `(1 - cos(pi t)) / 2` while
+/// opening (`t = alpha - k` in `[0, 1]`), 1 once open.
+pub fn octave_weight(alpha: f64, k: usize) -> f64 {
+    let t = (alpha - k as f64).clamp(0.0, 1.0);
+    (1.0 - (PI * t).cos()) / 2.0
 }
 
 impl PositionalEncodingConfig {
@@ -44,6 +61,7 @@ impl PositionalEncodingConfig {
             frequencies: self.frequencies,
             include_input: self.include_input,
             rotated: self.rotated,
+            window: None,
         }
     }
 }
@@ -105,6 +123,18 @@ fn quaternion_rotation(u1: f64, u2: f64, u3: f64) -> [[f64; 3]; 3] {
 }
 
 impl PositionalEncoding {
+    /// Opens the first `alpha` octaves (fractional: the next one partly); `None`, or any
+    /// `alpha >= frequencies`, opens all. A window at or past every octave leaves the
+    /// encoding exactly the paper's.
+    pub fn set_window(&mut self, alpha: Option<f64>) {
+        self.window = alpha.filter(|&a| a < self.frequencies as f64);
+    }
+
+    /// The weight of octave `k` under the window: 1 for an open one.
+    pub fn weight(&self, k: usize) -> f64 {
+        self.window.map_or(1.0, |alpha| octave_weight(alpha, k))
+    }
+
     /// Output features per input coordinate triple: `3 (include_input) + 6 F`.
     pub fn output_dim(&self) -> usize {
         3 * usize::from(self.include_input) + 6 * self.frequencies
@@ -126,9 +156,19 @@ impl PositionalEncoding {
             .matmul(Tensor::from_data(TensorData::new(rt, [3, 3]), &x.device()))
     }
 
+    /// `t` times octave `k`'s weight under the window (`t` itself when the octave is open).
+    fn weighted(&self, t: Tensor<2>, k: usize) -> Tensor<2> {
+        let weight = self.weight(k);
+        if weight == 1.0 {
+            t
+        } else {
+            t.mul_scalar(weight)
+        }
+    }
+
     /// `[points, 3] -> [points, output_dim]`, laid out as `[x, sin(pi x), cos(pi x),
     /// sin(2 pi x), cos(2 pi x), ...]` with each block holding the three coordinates (of
-    /// `R_k x` when rotated).
+    /// `R_k x` when rotated), each octave times its weight under the window.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
         let mut parts = Vec::with_capacity(1 + 2 * self.frequencies);
         if self.include_input {
@@ -136,8 +176,8 @@ impl PositionalEncoding {
         }
         for k in 0..self.frequencies {
             let scaled = self.octave(&x, k);
-            parts.push(scaled.clone().sin());
-            parts.push(scaled.cos());
+            parts.push(self.weighted(scaled.clone().sin(), k));
+            parts.push(self.weighted(scaled.cos(), k));
         }
         Tensor::cat(parts, 1)
     }
@@ -157,13 +197,13 @@ impl PositionalEncoding {
             derivs.push(Tensor::ones([points, 3], &device));
         }
         for k in 0..self.frequencies {
-            let f = PI * 2f64.powi(k as i32);
+            let f = PI * 2f64.powi(k as i32) * self.weight(k);
             let scaled = self.octave(&x, k);
             let (sin, cos) = (scaled.clone().sin(), scaled.cos());
             derivs.push(cos.clone().mul_scalar(f));
             derivs.push(sin.clone().mul_scalar(-f));
-            parts.push(sin);
-            parts.push(cos);
+            parts.push(self.weighted(sin, k));
+            parts.push(self.weighted(cos, k));
         }
         (Tensor::cat(parts, 1), Tensor::cat(derivs, 1))
     }
@@ -360,6 +400,115 @@ mod tests {
                 (f64::from(*got) - w).abs() < 2e-5,
                 "feature {i}: {got} vs {w}"
             );
+        }
+    }
+
+    #[test]
+    fn octave_weights_open_smoothly_one_after_another() {
+        assert_eq!(octave_weight(2.0, 2), 0.0);
+        assert_eq!(octave_weight(2.0, 1), 1.0);
+        assert!((octave_weight(2.5, 2) - 0.5).abs() < 1e-15);
+        assert!((octave_weight(2.25, 2) - (1.0 - (PI / 4.0).cos()) / 2.0).abs() < 1e-15);
+        for k in 0..4 {
+            let mut previous = 0.0;
+            for i in 0..=40 {
+                let w = octave_weight(f64::from(i) / 10.0, k);
+                assert!(w >= previous && (0.0..=1.0).contains(&w), "k {k} i {i}");
+                previous = w;
+            }
+        }
+        let mut enc = PositionalEncodingConfig::new().with_frequencies(5).init();
+        enc.set_window(Some(5.0));
+        assert_eq!(enc.window, None, "a window past every octave is no window");
+        enc.set_window(Some(4.3));
+        assert_eq!(enc.window, Some(4.3));
+        assert_eq!(enc.weight(3), 1.0);
+        enc.set_window(None);
+        assert!((0..5).all(|k| enc.weight(k) == 1.0));
+    }
+
+    /// The encoding with `window` against its f64 formula, octave by octave.
+    fn check_windowed_formula(rotated: bool, window: f64) {
+        let device = Device::flex();
+        let mut enc = PositionalEncodingConfig::new()
+            .with_frequencies(5)
+            .with_rotated(rotated)
+            .init();
+        enc.set_window(Some(window));
+        let x = [0.1f64, -0.7, 0.35];
+        let data: Vec<f32> = x.iter().map(|v| *v as f32).collect();
+        let out = to_f32_vec(enc.forward(Tensor::<2>::from_data(
+            TensorData::new(data, [1, 3]),
+            &device,
+        )));
+        let mut want: Vec<f64> = x.to_vec();
+        for k in 0..5 {
+            let r = if rotated {
+                octave_rotation(k)
+            } else {
+                [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+            };
+            let f = PI * 2f64.powi(k as i32);
+            let t = (window - k as f64).clamp(0.0, 1.0);
+            let weight = (1.0 - (PI * t).cos()) / 2.0;
+            let u: Vec<f64> = (0..3)
+                .map(|i| f * (0..3).map(|j| r[i][j] * x[j]).sum::<f64>())
+                .collect();
+            want.extend(u.iter().map(|v| weight * v.sin()));
+            want.extend(u.iter().map(|v| weight * v.cos()));
+        }
+        for (i, (got, w)) in out.iter().zip(&want).enumerate() {
+            assert!(
+                (f64::from(*got) - w).abs() < 2e-5,
+                "rotated {rotated} window {window} feature {i}: {got} vs {w}"
+            );
+        }
+        // The closed octave feeds the field exact zeros.
+        if window <= 4.0 {
+            assert!(out[3 + 24..].iter().all(|&v| v == 0.0));
+        }
+    }
+
+    #[test]
+    fn windowed_encoding_matches_the_formula_in_f64() {
+        for rotated in [false, true] {
+            for window in [0.0, 2.0, 3.3, 4.0, 4.75] {
+                check_windowed_formula(rotated, window);
+            }
+        }
+    }
+
+    #[test]
+    fn windowed_derivative_matches_central_differences() {
+        for rotated in [false, true] {
+            let mut enc = PositionalEncodingConfig::new()
+                .with_frequencies(5)
+                .with_rotated(rotated)
+                .init();
+            enc.set_window(Some(3.4));
+            check_jacobian(&enc);
+        }
+    }
+
+    #[test]
+    fn an_open_window_is_bit_identical_to_none() {
+        let device = Device::flex();
+        let x = Tensor::<2>::from_data(
+            TensorData::new(vec![0.3f32, -0.45, 0.8, 0.01, 0.2, -0.9], [2, 3]),
+            &device,
+        );
+        let open = PositionalEncodingConfig::new().with_frequencies(5).init();
+        let mut windowed = open.clone();
+        // Octaves 0-3 are fully open at 4.0: weight exactly 1, so no multiply at all.
+        windowed.window = Some(4.0);
+        let (a, da) = open.forward_with_derivative(x.clone());
+        let (b, db) = windowed.forward_with_derivative(x);
+        let (a, da, b, db) = (to_f32_vec(a), to_f32_vec(da), to_f32_vec(b), to_f32_vec(db));
+        let (d, first) = (open.output_dim(), 3 + 24);
+        for row in 0..2 {
+            let open_part = row * d..row * d + first;
+            assert_eq!(a[open_part.clone()], b[open_part.clone()], "row {row}");
+            assert_eq!(da[open_part.clone()], db[open_part], "row {row}");
         }
     }
 

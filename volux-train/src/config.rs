@@ -451,6 +451,13 @@ impl TrainConfig {
         self.model.generator().expect("validated")
     }
 
+    /// The positional encoding's window after `images` images (`[schedule] open_octaves`;
+    /// `None`: every octave open).
+    pub fn octave_window(&self, images: u64) -> Option<f64> {
+        self.schedule
+            .octave_window(images, self.generator().neiif.frequencies)
+    }
+
     /// Upsampling blocks of the generator.
     pub fn blocks(&self) -> usize {
         let g = self.generator();
@@ -506,7 +513,7 @@ impl TrainConfig {
             return Err("train.max_nonfinite must be at least 1".into());
         }
         self.loss.validate()?;
-        self.schedule.validate(self.blocks())?;
+        self.schedule.validate(self.blocks(), g.neiif.frequencies)?;
         let stage_one = self.loss.albedo > 0.0 || self.loss.geometry > 0.0;
         if self.schedule.stage1_kimg > 0.0 && !stage_one && !self.left_out.is_empty() {
             let terms: Vec<String> = self.left_out.iter().map(ToString::to_string).collect();

@@ -66,7 +66,10 @@ impl TrainedGenerator {
     ) -> Result<Self, TrainError> {
         let config = TrainConfig::from_text(state.config.clone(), &state.config_path)?;
         let device = backend.device()?;
-        let g = load(config.generator().init(&device)?)?;
+        let mut g = load(config.generator().init(&device)?)?;
+        // The field as trained: the encoding's octaves open as far as the schedule had
+        // opened them at the checkpoint's images.
+        g.set_octave_window(config.octave_window(state.images));
         Ok(TrainedGenerator {
             g,
             config,

@@ -26,6 +26,12 @@ pub struct ScheduleConfig {
     /// block fades in, its inputs (real and fake) have the ungrown resolutions faded out
     /// in the same way (PGGAN; see [`crate::progressive`]).
     pub fade_discriminator: bool,
+    /// Positional-encoding octaves open from the start; the rest open coarse to fine (BARF),
+    /// one after another, each over `octave_fade_kimg` from `octave_fade_start_kimg` on.
+    /// Absent: every octave from the start (the paper).
+    pub open_octaves: Option<usize>,
+    pub octave_fade_start_kimg: f64,
+    pub octave_fade_kimg: f64,
 }
 
 impl ScheduleConfig {
@@ -38,6 +44,9 @@ impl ScheduleConfig {
             // PGGAN's 600k images per fade-in.
             fade_kimg: 600.0,
             fade_discriminator: true,
+            open_octaves: None,
+            octave_fade_start_kimg: 0.0,
+            octave_fade_kimg: 0.0,
         }
     }
 }
@@ -78,12 +87,15 @@ impl ActiveTerms {
 }
 
 impl ScheduleConfig {
-    /// Checks lengths, naming the bad key: finite, non-negative, fade-in within stage 1.
-    pub fn validate(&self, blocks: usize) -> Result<(), String> {
+    /// Checks lengths, naming the bad key: finite, non-negative, fade-in within stage 1, no
+    /// more octaves open than the encoding has (`frequencies`).
+    pub fn validate(&self, blocks: usize, frequencies: usize) -> Result<(), String> {
         for (key, v) in [
             ("stage1_kimg", self.stage1_kimg),
             ("stage2_kimg", self.stage2_kimg),
             ("fade_kimg", self.fade_kimg),
+            ("octave_fade_start_kimg", self.octave_fade_start_kimg),
+            ("octave_fade_kimg", self.octave_fade_kimg),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("schedule.{key} = {v} must be finite and >= 0"));
@@ -95,7 +107,31 @@ impl ScheduleConfig {
                 self.fade_kimg, self.stage1_kimg
             ));
         }
+        if let Some(open) = self.open_octaves
+            && open > frequencies
+        {
+            return Err(format!(
+                "schedule.open_octaves = {open} is more than the encoding's {frequencies} octaves (model.frequencies)"
+            ));
+        }
         Ok(())
+    }
+
+    /// The positional encoding's window after `images` images, for an encoding of
+    /// `frequencies` octaves: `None` (every octave open) without `open_octaves` or once all
+    /// have opened, else the octaves open (fractional while one opens; BARF's `alpha`).
+    pub fn octave_window(&self, images: u64, frequencies: usize) -> Option<f64> {
+        let open = self.open_octaves? as f64;
+        let closed = frequencies as f64 - open;
+        let elapsed = images as f64 / 1000.0 - self.octave_fade_start_kimg;
+        let opened = if elapsed < 0.0 {
+            0.0
+        } else if self.octave_fade_kimg == 0.0 {
+            closed
+        } else {
+            (elapsed / self.octave_fade_kimg).min(closed)
+        };
+        (opened < closed).then_some(open + opened)
     }
 
     /// The stage after `images` images.
@@ -149,6 +185,9 @@ mod tests {
             stage2_kimg: 20.0,
             fade_kimg: 4.0,
             fade_discriminator: true,
+            open_octaves: None,
+            octave_fade_start_kimg: 0.0,
+            octave_fade_kimg: 0.0,
         }
     }
 
@@ -190,6 +229,32 @@ mod tests {
     }
 
     #[test]
+    fn octaves_open_one_after_another_from_their_start() {
+        let s = schedule();
+        assert_eq!(s.octave_window(5_000, 6), None, "no open_octaves: all open");
+        let s = ScheduleConfig {
+            open_octaves: Some(4),
+            octave_fade_start_kimg: 2.0,
+            octave_fade_kimg: 1.5,
+            ..s
+        };
+        assert_eq!(s.octave_window(0, 6), Some(4.0));
+        assert_eq!(s.octave_window(2_000, 6), Some(4.0));
+        assert_eq!(s.octave_window(2_750, 6), Some(4.5));
+        assert_eq!(s.octave_window(3_500, 6), Some(5.0));
+        assert_eq!(s.octave_window(4_250, 6), Some(5.5));
+        assert_eq!(s.octave_window(5_000, 6), None, "all open");
+        assert_eq!(s.octave_window(50_000, 6), None);
+        assert_eq!(s.octave_window(0, 4), None, "nothing left to open");
+        let instant = ScheduleConfig {
+            octave_fade_kimg: 0.0,
+            ..s
+        };
+        assert_eq!(instant.octave_window(1_999, 6), Some(4.0));
+        assert_eq!(instant.octave_window(2_000, 6), None);
+    }
+
+    #[test]
     fn terms_follow_the_stage_and_zero_weights_run_nothing() {
         let s = schedule();
         let w = LossWeights::default();
@@ -224,16 +289,32 @@ mod tests {
                 .to_string()
                 .contains("stage3_kimg")
         );
-        assert!(c.validate(2).is_ok());
-        assert!(c.validate(6).unwrap_err().contains("fade_kimg"));
+        assert!(c.validate(2, 4).is_ok());
+        assert!(c.validate(6, 4).unwrap_err().contains("fade_kimg"));
         let bad = ScheduleConfig {
             stage2_kimg: f64::NAN,
             ..c
         };
         assert!(
-            bad.validate(1)
+            bad.validate(1, 4)
                 .unwrap_err()
                 .contains("schedule.stage2_kimg")
+        );
+        let c: ScheduleConfig = toml::from_str("open_octaves = 4\noctave_fade_kimg = 2.0").unwrap();
+        assert!(c.validate(1, 5).is_ok());
+        let e = c.validate(1, 3).unwrap_err();
+        assert!(
+            e.contains("schedule.open_octaves = 4") && e.contains("3"),
+            "{e}"
+        );
+        let bad = ScheduleConfig {
+            octave_fade_kimg: -1.0,
+            ..c
+        };
+        assert!(
+            bad.validate(1, 5)
+                .unwrap_err()
+                .contains("schedule.octave_fade_kimg")
         );
     }
 }

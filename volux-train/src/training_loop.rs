@@ -240,7 +240,7 @@ impl Trainer {
         let metrics =
             MetricsLog::open(&metrics_path, state.step).map_err(|e| io_error(&metrics_path, e))?;
         let side_by_side = side_by_side_on(&device, &config);
-        Ok(Trainer {
+        let mut trainer = Trainer {
             config,
             options,
             device,
@@ -256,7 +256,19 @@ impl Trainer {
             fake_poses,
             evaluator: None,
             side_by_side,
-        })
+        };
+        trainer.open_octaves();
+        Ok(trainer)
+    }
+
+    /// Sets the positional encoding's window of the generator and its EMA to the schedule's
+    /// at the images seen (`[schedule] open_octaves`): after every step (and on starting or
+    /// seeking), so that the next step, and grids and evaluations between steps, see the
+    /// schedule's field at the images seen.
+    fn open_octaves(&mut self) {
+        let window = self.config.octave_window(self.state.images);
+        self.nets.g.set_octave_window(window);
+        self.nets.ema.set_octave_window(window);
     }
 
     pub fn state(&self) -> &TrainState {
@@ -309,6 +321,7 @@ impl Trainer {
         }
         self.state.step = step;
         self.state.images = images;
+        self.open_octaves();
     }
 
     /// Attaches the light evaluation that [`Trainer::run`] takes every `[output] eval_kimg`
@@ -419,6 +432,7 @@ impl Trainer {
             n.ema = profile::timed(ProfilePhase::Ema, || update_ema(n.ema.clone(), &n.g, beta));
             self.averages.add(&outcome.losses);
         }
+        self.open_octaves();
         Ok(StepReport {
             step,
             images: self.state.images,

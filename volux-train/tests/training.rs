@@ -184,6 +184,50 @@ fn training_runs_both_stages_and_resumes_with_identical_losses() {
 }
 
 #[test]
+fn octaves_open_on_schedule_in_training_and_sampling() {
+    let _one = ONE_RUN_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+    let dir = tempfile::tempdir().unwrap();
+    let text = TINY
+        .replace("importance = 2", "importance = 2\nfrequencies = 5")
+        .replace(
+            "fade_kimg = 0.002",
+            "fade_kimg = 0.002\nopen_octaves = 4\noctave_fade_start_kimg = 0.002\noctave_fade_kimg = 0.004",
+        );
+    let c = config(dir.path(), &text);
+    let out = dir.path().join("run");
+    let mut t = Trainer::new(c.clone(), options(&out, false, Some(3))).unwrap();
+    let windows = |t: &Trainer| {
+        (
+            t.generator().neiif.encoding.window,
+            t.ema().neiif.encoding.window,
+        )
+    };
+    assert_eq!(windows(&t), (Some(4.0), Some(4.0)));
+    let first = t.step().unwrap();
+    assert_eq!(windows(&t), (Some(4.0), Some(4.0)), "2 images: not started");
+    t.step().unwrap();
+    assert_eq!(windows(&t), (Some(4.5), Some(4.5)), "4 images: half open");
+    t.step().unwrap();
+    t.checkpoint().unwrap();
+    assert_eq!(t.state().images, 6);
+    drop(t);
+    // Sampling sees the field as trained at the checkpoint's 6 images.
+    let sampled = volux_train::pretrained::load_for_sampling(&out, BackendKind::Cpu).unwrap();
+    assert_eq!(sampled.g.neiif.encoding.window, None, "6 images: all open");
+    let mut t = Trainer::new(c.clone(), options(&out, true, None)).unwrap();
+    t.seek(1, 4);
+    assert_eq!(windows(&t), (Some(4.5), Some(4.5)));
+    drop(t);
+
+    // The window reaches the field: the first step's losses differ from all octaves open.
+    let open = config(dir.path(), &text.replace("open_octaves = 4\n", ""));
+    let mut t = Trainer::new(open, options(&dir.path().join("open"), false, Some(1))).unwrap();
+    assert_eq!(windows(&t), (None, None));
+    let all_open = t.step().unwrap();
+    assert_ne!(first.losses, all_open.losses);
+}
+
+#[test]
 fn non_finite_steps_are_skipped_then_stop_the_run() {
     let _one = ONE_RUN_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let dir = tempfile::tempdir().unwrap();

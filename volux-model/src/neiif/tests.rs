@@ -37,10 +37,16 @@ fn check_gradient(frequencies: usize, sphere_prior: f64, h: f64, tol: f64) {
 }
 
 fn check_gradient_of(config: NeiifConfig, h: f64, tol: f64) {
+    check_windowed_gradient_of(config, None, h, tol);
+}
+
+/// [`check_gradient_of`] with the encoding's octaves opened to `window`.
+fn check_windowed_gradient_of(config: NeiifConfig, window: Option<f64>, h: f64, tol: f64) {
     let device = Device::flex();
     let frequencies = config.frequencies;
     // Fixed weights and latent, so that the error measured here is the error of every run.
-    let field = config.init(&device).map(&mut Reseed::new(21, DType::F32));
+    let mut field = config.init(&device).map(&mut Reseed::new(21, DType::F32));
+    field.encoding.set_window(window);
     let w = normals(&mut SplitMix64::new(22), 16);
     let w = Tensor::<1>::from_floats(
         w.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
@@ -183,6 +189,27 @@ fn density_gradient_matches_central_differences_with_rotated_octaves() {
         5e-5,
         1e-2,
     );
+}
+
+#[test]
+fn density_gradient_matches_central_differences_with_octaves_opening() {
+    // The fifth octave half open and the fourth open: the sweep must carry each octave's
+    // weight through the encoding's derivative (without it the gradient is off by the
+    // closed part of the octave, O(1)).
+    for rotated in [false, true] {
+        check_windowed_gradient_of(
+            small_config(5, 10.0).with_rotated_encoding(rotated),
+            Some(4.5),
+            5e-4,
+            3e-3,
+        );
+        check_windowed_gradient_of(
+            small_config(5, 0.0).with_rotated_encoding(rotated),
+            Some(2.2),
+            1e-3,
+            2e-3,
+        );
+    }
 }
 
 #[test]

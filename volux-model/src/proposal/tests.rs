@@ -101,19 +101,27 @@ fn segment_weights_match_the_f64_reference() {
 
 #[test]
 fn the_density_only_query_matches_the_full_fields_density() {
-    for autodiff in [false, true] {
+    // With the encoding's octaves partly closed too: the density-only query runs on
+    // `valid()`, which must keep the window.
+    for (autodiff, window) in [
+        (false, None),
+        (true, None),
+        (false, Some(2.5)),
+        (true, Some(2.5)),
+    ] {
         let mut device = Device::flex();
         if autodiff {
             device = device.autodiff();
         }
         device.seed(5);
-        let net = NeiifConfig::new()
+        let mut net = NeiifConfig::new()
             .with_w_dim(32)
             .with_width(32)
             .with_head_width(32)
             .with_sphere_prior(10.0)
             .with_sphere_radius(0.35)
             .init(&device);
+        net.encoding.set_window(window);
         let w = Tensor::<2>::random([2, 32], Distribution::Normal(0.0, 1.0), &device);
         let field = LatentField { field: &net, w };
         let points = Tensor::<3>::random([2, 300, 3], Distribution::Uniform(-0.6, 0.6), &device);

@@ -195,6 +195,15 @@ fn bad_configs_name_the_file_and_the_key() {
             format!("{TINY}\n[schedule]\nstage1_kimg = 1.0\nfade_kimg = 2.0\n"),
             "fade_kimg",
         ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nfrequencies = 4")
+                + "\n[schedule]\nopen_octaves = 5\noctave_fade_kimg = 1.0\n",
+            "schedule.open_octaves = 5",
+        ),
+        (
+            format!("{TINY}\n[schedule]\nopen_octaves = 3\noctave_fade_start_kimg = -1.0\n"),
+            "schedule.octave_fade_start_kimg",
+        ),
         (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
         (
             format!("{TINY}\n[data.source]\nkind = \"synthetic\"\nidentity = 3\n"),
