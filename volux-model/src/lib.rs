@@ -44,6 +44,7 @@ pub mod ray_sampling;
 pub mod relighting;
 pub mod sampling_report;
 pub mod shading;
+pub mod template_planes;
 #[cfg(test)]
 mod test_support;
 pub mod unet;

@@ -29,6 +29,7 @@ use crate::fused_activation;
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
 use crate::positional_encoding::{PositionalEncoding, PositionalEncodingConfig};
 use crate::profile::{self, Phase};
+use crate::template_planes::{TemplatePlanes, TemplatePlanesConfig};
 
 /// `1 / sqrt(E[a(x)^2])` for `x ~ N(0, 1)`: keeps unit second moment through a layer, as
 /// StyleGAN2's `sqrt(2)` does for its leaky ReLU.
@@ -103,12 +104,22 @@ pub struct NeiifConfig {
     /// rotation first (see [`crate::positional_encoding`]; the paper's is axis-aligned).
     #[config(default = false)]
     pub rotated_encoding: bool,
+    /// Control points per side of a latent-independent tri-plane of features handed to the
+    /// first layer beside the encoding (see [`crate::template_planes`]; not in the paper);
+    /// 0: none.
+    #[config(default = 0)]
+    pub template_resolution: usize,
+    /// Features of the tri-plane.
+    #[config(default = 8)]
+    pub template_channels: usize,
 }
 
 /// The field.
 #[derive(Module, Debug)]
 pub struct Neiif {
     pub encoding: PositionalEncoding,
+    /// The tri-plane of features beside the encoding, if any.
+    pub template: Option<TemplatePlanes>,
     pub layers: Vec<ModulatedLinear>,
     pub density_head: EqualizedLinear,
     pub head_hidden: EqualizedLinear,
@@ -179,10 +190,16 @@ impl NeiifConfig {
             .with_frequencies(self.frequencies)
             .with_rotated(self.rotated_encoding)
             .init();
+        let template = (self.template_resolution > 0).then(|| {
+            TemplatePlanesConfig::new(self.template_resolution)
+                .with_channels(self.template_channels)
+                .init(device)
+        });
+        let template_dim = template.as_ref().map_or(0, |t| t.channels);
         let layers = (0..self.layers)
             .map(|i| {
                 let d_input = if i == 0 {
-                    encoding.output_dim()
+                    encoding.output_dim() + template_dim
                 } else {
                     self.width
                 };
@@ -204,6 +221,7 @@ impl NeiifConfig {
         }
         Neiif {
             encoding,
+            template,
             layers,
             density_head: EqualizedLinearConfig::new(self.width, 1).init(device),
             head_hidden: EqualizedLinearConfig::new(self.width, self.head_width).init(device),
@@ -267,13 +285,22 @@ impl Neiif {
         });
         let flat = points.reshape([b * p, 3]);
         let d = self.encoding.output_dim();
+        let template = self
+            .template
+            .as_ref()
+            .map(|t| t.forward(flat.clone(), wants.normals));
         let (encoded, mut encoding_derivative) = if wants.normals {
             let (encoded, deriv) = self.encoding.forward_with_derivative(flat);
             (encoded, Some(deriv.reshape([b, p, d])))
         } else {
             (self.encoding.forward(flat), None)
         };
-        let mut h = encoded.reshape([b, p, d]);
+        let (encoded, template_derivative) = match template {
+            Some((features, derivative)) => (Tensor::cat(vec![encoded, features], 1), derivative),
+            None => (encoded, None),
+        };
+        let input = encoded.dims()[1];
+        let mut h = encoded.reshape([b, p, input]);
         let mut out = FieldOutput {
             sigma: Tensor::zeros([b, p], &h.device()),
             grad_sigma: None,
@@ -316,7 +343,10 @@ impl Neiif {
                     let v = (kernels.pullback)(u, y, bias);
                     u = batched_matmul(v, m.weight.swap_dims(1, 2));
                 }
-                let mut g = self.encoding.fold(u * deriv);
+                let mut g = self.encoding.fold(u.clone().narrow(2, 0, d) * deriv);
+                if let (Some(t), Some(derivative)) = (&self.template, &template_derivative) {
+                    g = g + t.fold(u.narrow(2, d, t.channels), derivative);
+                }
                 if let Some((_, grad)) = &prior {
                     g = g + grad.clone();
                 }

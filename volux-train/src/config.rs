@@ -55,6 +55,12 @@ pub const MAX_PREFETCH: usize = 16;
 /// The most layers `[model] mapping_layers` may give (StyleGAN2 uses 8, EG3D 2).
 pub const MAX_MAPPING_LAYERS: usize = 32;
 
+/// The largest `[model] template_resolution`: EG3D's planes are 256 on a side.
+pub const MAX_TEMPLATE_RESOLUTION: usize = 256;
+
+/// The most `[model] template_channels` (EG3D's planes have 32).
+pub const MAX_TEMPLATE_CHANNELS: usize = 64;
+
 /// The largest `[model] d_channel_max`: StyleGAN2's largest configs use 512; a 3x3
 /// convolution of 4096 channels already holds 600 MB of weights.
 pub const MAX_D_CHANNEL_MAX: usize = 4096;
@@ -121,6 +127,13 @@ pub struct ModelConfig {
     /// `small`, 512 for the paper's).
     #[serde(default)]
     pub d_channel_max: Option<usize>,
+    /// Control points per side of a latent-independent tri-plane of features beside the
+    /// NeIIF's positional encoding (absent or 0: none, the paper's field).
+    #[serde(default)]
+    pub template_resolution: Option<usize>,
+    /// Features of that tri-plane (8 if absent).
+    #[serde(default)]
+    pub template_channels: Option<usize>,
 }
 
 /// The `[model] encoding` key.
@@ -223,6 +236,22 @@ impl ModelConfig {
         }
         if let Some(kind) = self.encoding {
             g.neiif.rotated_encoding = kind == EncodingKind::Rotated;
+        }
+        if let Some(n) = self.template_resolution {
+            if n == 1 || n > MAX_TEMPLATE_RESOLUTION {
+                return Err(format!(
+                    "model.template_resolution = {n} must be 0 (none) or in 2..={MAX_TEMPLATE_RESOLUTION}"
+                ));
+            }
+            g.neiif.template_resolution = n;
+        }
+        if let Some(n) = self.template_channels {
+            if !(1..=MAX_TEMPLATE_CHANNELS).contains(&n) {
+                return Err(format!(
+                    "model.template_channels = {n} must be in 1..={MAX_TEMPLATE_CHANNELS}"
+                ));
+            }
+            g.neiif.template_channels = n;
         }
         if let Some(n) = self.mapping_layers {
             if !(1..=MAX_MAPPING_LAYERS).contains(&n) {

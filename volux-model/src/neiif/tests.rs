@@ -141,6 +141,64 @@ fn a_loss_on_the_density_gradient_has_the_central_difference_gradient_in_w() {
     assert!(scale > 0.0, "the loss does not depend on w");
 }
 
+/// The template planes in the field: the density gradient (whose sweep ends in the planes'
+/// derivatives as well as the encoding's) matches central differences, and the gradient in
+/// the planes of a loss on it matches central differences of that loss.
+#[test]
+fn template_planes_give_the_central_difference_density_gradient_and_plane_gradient() {
+    let config = small_config(4, 10.0)
+        .with_template_resolution(8)
+        .with_template_channels(4);
+    check_gradient_of(config.clone(), 1e-3, 5e-3);
+
+    let device = Device::flex().autodiff();
+    let mut field = config.init(&device).map(&mut Reseed::new(41, DType::F32));
+    let n = 16;
+    let pts = points(n, 9, &device);
+    let r = normals(&mut SplitMix64::new(43), 3 * n);
+    let r = Tensor::<1>::from_floats(
+        r.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
+        &device,
+    )
+    .reshape([1, n, 3]);
+    let w = normals(&mut SplitMix64::new(42), 16);
+    let w = Tensor::<1>::from_floats(
+        w.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
+        &device,
+    )
+    .reshape([1, 16]);
+    let loss_of = |field: &Neiif| {
+        let out = field.forward(pts.clone(), w.clone(), FieldWants::ALL);
+        (out.grad_sigma.unwrap() * r.clone()).sum()
+    };
+    let grads = loss_of(&field).backward();
+    let template = field.template.as_ref().unwrap();
+    let got = to_f32_vec(template.planes.grad(&grads).unwrap());
+    let values = to_f32_vec(template.planes.val());
+    let dims = template.planes.val().dims();
+    // The entries the loss leans on most, against central differences.
+    let mut order: Vec<usize> = (0..got.len()).collect();
+    order.sort_by(|&a, &b| got[b].abs().total_cmp(&got[a].abs()));
+    let scale = f64::from(got[order[0]].abs());
+    assert!(scale > 0.0, "the loss does not reach the planes");
+    let h = 1e-2;
+    for &k in &order[..8] {
+        let mut at = |delta: f64| {
+            let mut v = values.clone();
+            v[k] += delta as f32;
+            let planes = Tensor::<2>::from_data(TensorData::new(v, dims), &device);
+            field.template.as_mut().unwrap().planes = burn::module::Param::from_tensor(planes);
+            f64::from(loss_of(&field).into_scalar::<f32>())
+        };
+        let fd = (at(h) - at(-h)) / (2.0 * h);
+        let g = f64::from(got[k]);
+        assert!(
+            (g - fd).abs() < 2e-2 * scale,
+            "d loss / d plane[{k}]: {g} vs central difference {fd} (scale {scale})"
+        );
+    }
+}
+
 #[test]
 fn activation_matches_softplus_and_sigmoid_in_f64() {
     let device = Device::flex();

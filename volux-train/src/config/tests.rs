@@ -110,6 +110,25 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
     ] {
         assert_eq!(c64.model.discriminator(role).unwrap().resolution, side);
     }
+    // The template planes: none unless asked; they reach the field's first layer and are
+    // part of what a resume must match.
+    assert_eq!(load(TINY).unwrap().generator().neiif.template_resolution, 0);
+    let text = TINY.replace(
+        "\"small\"",
+        "\"small\"\ntemplate_resolution = 16\ntemplate_channels = 4",
+    );
+    let planes = load(&text).unwrap();
+    let g = planes.generator();
+    assert_eq!(
+        (g.neiif.template_resolution, g.neiif.template_channels),
+        (16, 4)
+    );
+    let field = g.neiif.init(&burn::tensor::Device::flex());
+    assert_eq!(
+        field.template.as_ref().unwrap().planes.val().dims(),
+        [3 * 16 * 16, 4]
+    );
+    assert!(planes.shapes().contains("template_resolution = 16"));
     // The encoding: the paper's unless asked; part of what a resume must match.
     assert!(!load(TINY).unwrap().generator().neiif.rotated_encoding);
     for (key, rotated) in [("axis-aligned", false), ("rotated", true)] {
@@ -203,6 +222,17 @@ fn bad_configs_name_the_file_and_the_key() {
         (
             format!("{TINY}\n[schedule]\nopen_octaves = 3\noctave_fade_start_kimg = -1.0\n"),
             "schedule.octave_fade_start_kimg",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\ntemplate_resolution = 1"),
+            "model.template_resolution = 1",
+        ),
+        (
+            TINY.replace(
+                "\"small\"",
+                "\"small\"\ntemplate_resolution = 8\ntemplate_channels = 0",
+            ),
+            "model.template_channels = 0",
         ),
         (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
         (

@@ -1,0 +1,226 @@
+use super::*;
+use crate::test_support::Reseed;
+use burn::tensor::DType;
+use volux_envmap::random::SplitMix64;
+
+/// The centred quadratic B-spline.
+fn b2(x: f64) -> f64 {
+    let a = x.abs();
+    if a <= 0.5 {
+        0.75 - a * a
+    } else if a <= 1.5 {
+        (1.5 - a) * (1.5 - a) / 2.0
+    } else {
+        0.0
+    }
+}
+
+/// The features at `x` in f64 straight from the definition: every control point of every
+/// plane (the grid extended by its edge values) times the B-spline at its distance, with the
+/// coordinate clamped to the planes' square.
+fn reference(planes: &[f64], n: usize, c: usize, bound: f64, x: [f64; 3]) -> Vec<f64> {
+    let last = (n - 1) as f64;
+    let s: Vec<f64> = x
+        .iter()
+        .map(|v| ((v + bound) * last / (2.0 * bound)).clamp(0.0, last))
+        .collect();
+    let mut out = vec![0.0; c];
+    for (plane, &(a, b)) in PLANE_AXES.iter().enumerate() {
+        for ka in -1..=n as i64 {
+            for kb in -1..=n as i64 {
+                let w = b2(s[a] - ka as f64) * b2(s[b] - kb as f64);
+                if w == 0.0 {
+                    continue;
+                }
+                let (ia, ib) = (ka.clamp(0, n as i64 - 1), kb.clamp(0, n as i64 - 1));
+                let row = plane * n * n + ia as usize * n + ib as usize;
+                for (ch, o) in out.iter_mut().enumerate() {
+                    *o += w * planes[row * c + ch];
+                }
+            }
+        }
+    }
+    out
+}
+
+fn planes(resolution: usize, channels: usize, bound: f64, device: &Device) -> TemplatePlanes {
+    TemplatePlanesConfig::new(resolution)
+        .with_channels(channels)
+        .with_bound(bound)
+        .init(device)
+        .map(&mut Reseed::new(3, DType::F32))
+}
+
+/// Points inside, on the edges of and outside the planes' square.
+fn test_points() -> Vec<[f64; 3]> {
+    let mut rng = SplitMix64::new(9);
+    let mut points: Vec<[f64; 3]> = (0..40)
+        .map(|_| std::array::from_fn(|_| rng.next_f64() * 1.6 - 0.8))
+        .collect();
+    points.extend([
+        [0.0, 0.0, 0.0],
+        [0.8, -0.8, 0.3],
+        [0.95, 0.2, -0.95],
+        [1.7, -3.0, 0.1],
+    ]);
+    points
+}
+
+fn tensor(points: &[[f64; 3]], device: &Device) -> Tensor<2> {
+    let v: Vec<f32> = points.iter().flatten().map(|&x| x as f32).collect();
+    Tensor::from_data(TensorData::new(v, [points.len(), 3]), device)
+}
+
+#[test]
+fn quadratic_taps_are_a_partition_of_unity_that_reproduces_lines() {
+    for s in [0.3, 2.0, 2.49, 2.5, 2.51, 6.999] {
+        let (taps, w, d) = quadratic_taps(s, 8);
+        assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-15, "s {s}");
+        assert!(d.iter().sum::<f64>().abs() < 1e-15, "s {s}");
+        if (1.0..6.0).contains(&s) {
+            // Away from the edges (no tap clamped): linear functions are reproduced, sum w_k k
+            // = s with derivative 1, and each weight is the B-spline at the tap's distance.
+            let at: f64 = taps.iter().zip(&w).map(|(&k, w)| k as f64 * w).sum();
+            let slope: f64 = taps.iter().zip(&d).map(|(&k, d)| k as f64 * d).sum();
+            assert!(
+                (at - s).abs() < 1e-12 && (slope - 1.0).abs() < 1e-12,
+                "s {s}"
+            );
+            for (&tap, &wk) in taps.iter().zip(&w) {
+                assert!((wk - b2(s - tap as f64)).abs() < 1e-15, "s {s} tap {tap}");
+            }
+        }
+    }
+}
+
+#[test]
+fn features_match_the_f64_definition_inside_on_and_outside_the_square() {
+    let device = Device::flex();
+    for (n, c, bound) in [(8, 3, 1.0), (5, 2, 0.7), (2, 1, 1.0)] {
+        let t = planes(n, c, bound, &device);
+        let values: Vec<f64> = to_f32_vec(t.planes.val())
+            .iter()
+            .map(|&v| f64::from(v))
+            .collect();
+        let points = test_points();
+        let (got, _) = t.forward(tensor(&points, &device), false);
+        let got = to_f32_vec(got);
+        for (q, x) in points.iter().enumerate() {
+            let want = reference(&values, n, c, bound, *x);
+            for ch in 0..c {
+                let g = f64::from(got[q * c + ch]);
+                assert!(
+                    (g - want[ch]).abs() < 1e-5 * (1.0 + want[ch].abs()),
+                    "n {n} point {x:?} channel {ch}: {g} vs {}",
+                    want[ch]
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn derivatives_match_central_differences_of_the_f64_definition() {
+    let device = Device::flex();
+    let (n, c, bound) = (8, 3, 1.0);
+    let t = planes(n, c, bound, &device);
+    let values: Vec<f64> = to_f32_vec(t.planes.val())
+        .iter()
+        .map(|&v| f64::from(v))
+        .collect();
+    // Inside the square, including points on a cell's boundary (s = k + 1/2, where the taps
+    // change: the derivative is continuous there) and on a control point.
+    let mut points = test_points();
+    points.truncate(40);
+    let cell = 2.0 * bound / (n - 1) as f64;
+    points.push([-bound + 2.5 * cell, -bound + 3.0 * cell, 0.1]);
+    let (_, derivatives) = t.forward(tensor(&points, &device), true);
+    let derivatives = derivatives.unwrap().map(to_f32_vec);
+    let h = 1e-5;
+    for (q, x) in points.iter().enumerate() {
+        for j in 0..3 {
+            let (mut a, mut b) = (*x, *x);
+            a[j] += h;
+            b[j] -= h;
+            let (fa, fb) = (
+                reference(&values, n, c, bound, a),
+                reference(&values, n, c, bound, b),
+            );
+            for ch in 0..c {
+                let fd = (fa[ch] - fb[ch]) / (2.0 * h);
+                let got = f64::from(derivatives[j][q * c + ch]);
+                assert!(
+                    (got - fd).abs() < 1e-4 * (1.0 + fd.abs()),
+                    "point {x:?} axis {j} channel {ch}: {got} vs {fd}"
+                );
+            }
+        }
+    }
+    // Outside the square the features are constant in the clamped coordinate.
+    let (_, d) = t.forward(tensor(&[[1.7, 0.1, 0.2]], &device), true);
+    assert!(to_f32_vec(d.unwrap()[0].clone()).iter().all(|&v| v == 0.0));
+}
+
+#[test]
+fn the_planes_gradient_is_each_taps_weight() {
+    let device = Device::flex().autodiff();
+    let (n, c) = (6, 2);
+    let t = planes(n, c, 1.0, &device);
+    let points = test_points();
+    let p = points.len();
+    let mut rng = SplitMix64::new(4);
+    let r: Vec<f64> = (0..p * c).map(|_| rng.next_f64() - 0.5).collect();
+    let r32: Vec<f32> = r.iter().map(|&v| v as f32).collect();
+    let r_t = Tensor::<2>::from_data(TensorData::new(r32, [p, c]), &device);
+    let (features, _) = t.forward(tensor(&points, &device), false);
+    let grads = (features * r_t).sum().backward();
+    let got = to_f32_vec(t.planes.grad(&grads).unwrap());
+    // d/dP[row, ch] of sum_q r[q, ch] f(x_q)[ch]: the f64 definition's weight of that row
+    // at each point, found by evaluating it on one-hot planes.
+    for row in [0, 7, n * n + 3, 2 * n * n + n * n - 1] {
+        let mut one_hot = vec![0.0; 3 * n * n * c];
+        one_hot[row * c] = 1.0;
+        let want: f64 = points
+            .iter()
+            .enumerate()
+            .map(|(q, x)| r[q * c] * reference(&one_hot, n, c, 1.0, *x)[0])
+            .sum();
+        let g = f64::from(got[row * c]);
+        assert!(
+            (g - want).abs() < 1e-5 * (1.0 + want.abs()),
+            "row {row}: {g} vs {want}"
+        );
+    }
+}
+
+#[test]
+fn fold_is_the_cotangent_through_the_derivatives() {
+    let device = Device::flex();
+    let t = planes(8, 3, 1.0, &device);
+    let points = test_points();
+    let p = points.len();
+    let (_, d) = t.forward(tensor(&points, &device), true);
+    let d = d.unwrap();
+    let u = Tensor::<3>::from_data(
+        TensorData::new(
+            (0..p * 3).map(|i| (i % 7) as f32 - 3.0).collect::<Vec<_>>(),
+            [1, p, 3],
+        ),
+        &device,
+    );
+    let got = to_f32_vec(t.fold(u.clone(), &d));
+    let (u, d) = (to_f32_vec(u), d.map(to_f32_vec));
+    for q in 0..p {
+        for j in 0..3 {
+            let want: f32 = (0..3).map(|ch| u[q * 3 + ch] * d[j][q * 3 + ch]).sum();
+            assert!((got[q * 3 + j] - want).abs() < 1e-5 * (1.0 + want.abs()));
+        }
+    }
+}
+
+#[test]
+fn fresh_planes_are_zero() {
+    let t = TemplatePlanesConfig::new(4).init(&Device::flex());
+    assert_eq!(t.planes.val().dims(), [48, 8]);
+    assert!(to_f32_vec(t.planes.val()).iter().all(|&v| v == 0.0));
+}
