@@ -16,13 +16,19 @@
 //! `k` of an axis sits at `-bound + 2 bound k / (resolution - 1)`; outside `[-bound, bound]`
 //! the coordinate is clamped (features constant, derivative 0). The taps and weights depend
 //! on the points alone, which carry no gradient, so they are computed on the host; the
-//! gather and the weighted sums are tensor ops, differentiable in the planes.
+//! weighted gathers are one flex operation with a hand-written backward into the planes
+//! ([`kernel`]; tensor ops on other backends, and as its reference).
+
+use std::sync::Arc;
 
 use burn::config::Config;
 use burn::module::{Module, Param};
-use burn::tensor::{Device, Int, Tensor, TensorData};
+use burn::tensor::{Device, Tensor};
 
 use crate::backend::to_f32_vec;
+use kernel::Taps;
+
+mod kernel;
 
 /// Configuration of [`TemplatePlanes`].
 #[derive(Config, Debug)]
@@ -91,14 +97,6 @@ pub fn quadratic_taps(s: f64, n: usize) -> ([usize; 3], [f64; 3], [f64; 3]) {
     ([tap(-1.0), tap(0.0), tap(1.0)], weights, derivatives)
 }
 
-/// Where a point's 27 taps are and what they weigh: `index[tap]` into the stacked planes,
-/// `weight[tap]` and `d weight[tap] / dx_j` for each axis `j`.
-struct Taps {
-    index: Vec<i64>,
-    weight: Vec<f32>,
-    derivative: [Vec<f32>; 3],
-}
-
 impl TemplatePlanes {
     /// Grid coordinate of world coordinate `x` (clamped), and `ds/dx` (0 where clamped).
     fn grid_coordinate(&self, x: f64) -> (f64, f64) {
@@ -114,38 +112,36 @@ impl TemplatePlanes {
         }
     }
 
-    /// The taps of `points` (`[p, 3]`, flattened), laid out `[TAPS, p]`.
-    fn taps(&self, points: &[f32]) -> Taps {
+    /// The taps of `points` (`[p, 3]`, flattened) with the features' weights and, with
+    /// `derivative`, the weights of their derivatives along x, y and z.
+    fn taps(&self, points: &[f32], derivative: bool) -> Taps {
         let p = points.len() / 3;
         let n = self.resolution;
+        let outputs = if derivative { 4 } else { 1 };
         let mut taps = Taps {
+            points: p,
+            outputs,
             index: vec![0; TAPS * p],
-            weight: vec![0.0; TAPS * p],
-            derivative: [
-                vec![0.0; TAPS * p],
-                vec![0.0; TAPS * p],
-                vec![0.0; TAPS * p],
-            ],
+            weights: vec![0.0; TAPS * p * outputs],
         };
         for (q, point) in points.chunks_exact(3).enumerate() {
-            let axes: Vec<_> = point
-                .iter()
-                .map(|&x| {
-                    let (s, ds) = self.grid_coordinate(f64::from(x));
-                    let (index, w, dw) = quadratic_taps(s, n);
-                    (index, w, dw.map(|d| d * ds))
-                })
-                .collect();
+            let axes: [_; 3] = std::array::from_fn(|j| {
+                let (s, ds) = self.grid_coordinate(f64::from(point[j]));
+                let (index, w, dw) = quadratic_taps(s, n);
+                (index, w, dw.map(|d| d * ds))
+            });
             for (plane, &(a, b)) in PLANE_AXES.iter().enumerate() {
                 let ((ia, wa, da), (ib, wb, db)) = (&axes[a], &axes[b]);
                 for oa in 0..3 {
                     for ob in 0..3 {
-                        let tap = plane * 9 + oa * 3 + ob;
-                        let at = tap * p + q;
-                        taps.index[at] = (plane * n * n + ia[oa] * n + ib[ob]) as i64;
-                        taps.weight[at] = (wa[oa] * wb[ob]) as f32;
-                        taps.derivative[a][at] = (da[oa] * wb[ob]) as f32;
-                        taps.derivative[b][at] = (wa[oa] * db[ob]) as f32;
+                        let at = q * TAPS + plane * 9 + oa * 3 + ob;
+                        taps.index[at] = (plane * n * n + ia[oa] * n + ib[ob]) as u32;
+                        let weights = &mut taps.weights[at * outputs..(at + 1) * outputs];
+                        weights[0] = (wa[oa] * wb[ob]) as f32;
+                        if derivative {
+                            weights[1 + a] = (da[oa] * wb[ob]) as f32;
+                            weights[1 + b] = (wa[oa] * db[ob]) as f32;
+                        }
                     }
                 }
             }
@@ -161,18 +157,12 @@ impl TemplatePlanes {
         derivative: bool,
     ) -> (Tensor<2>, Option<[Tensor<2>; 3]>) {
         let [p, _] = points.dims();
-        let device = points.device();
-        let taps = self.taps(&to_f32_vec(points));
+        let taps = Arc::new(self.taps(&to_f32_vec(points), derivative));
         let c = self.channels;
-        let index = Tensor::<1, Int>::from_data(TensorData::new(taps.index, [TAPS * p]), &device);
-        let gathered = self.planes.val().select(0, index).reshape([TAPS, p, c]);
-        let sum = |w: Vec<f32>| {
-            let w = Tensor::<3>::from_data(TensorData::new(w, [TAPS, p, 1]), &device);
-            (gathered.clone() * w).sum_dim(0).reshape([p, c])
-        };
-        let [dx, dy, dz] = taps.derivative;
-        let derivatives = derivative.then(|| [sum(dx), sum(dy), sum(dz)]);
-        (sum(taps.weight), derivatives)
+        let out = kernel::sample(self.planes.val(), taps);
+        let output = |k: usize| out.clone().narrow(1, k, 1).reshape([p, c]);
+        let derivatives = derivative.then(|| [output(1), output(2), output(3)]);
+        (output(0), derivatives)
     }
 
     /// The gradient in the point, `[b, p, 3]`, of `<u, features>` for a cotangent `u:

@@ -1,6 +1,6 @@
 use super::*;
 use crate::test_support::Reseed;
-use burn::tensor::DType;
+use burn::tensor::{DType, TensorData};
 use volux_envmap::random::SplitMix64;
 
 /// The centred quadratic B-spline.
@@ -223,4 +223,80 @@ fn fresh_planes_are_zero() {
     let t = TemplatePlanesConfig::new(4).init(&Device::flex());
     assert_eq!(t.planes.val().dims(), [48, 8]);
     assert!(to_f32_vec(t.planes.val()).iter().all(|&v| v == 0.0));
+}
+
+/// The taps of [`test_points`] for planes `t`, and the planes as a tensor on `device`.
+fn taps_of(t: &TemplatePlanes, derivative: bool) -> Arc<Taps> {
+    let v: Vec<f32> = test_points().iter().flatten().map(|&x| x as f32).collect();
+    Arc::new(t.taps(&v, derivative))
+}
+
+#[test]
+fn the_kernel_equals_its_tensor_op_reference_in_values_and_gradients() {
+    for derivative in [false, true] {
+        // Values, without autodiff.
+        let device = Device::flex();
+        let t = planes(8, 5, 1.0, &device);
+        let taps = taps_of(&t, derivative);
+        let got = to_f32_vec(kernel::sample(t.planes.val(), taps.clone()));
+        let want = to_f32_vec(kernel::sample_reference(t.planes.val(), &taps));
+        assert_eq!(got.len(), want.len());
+        for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-5 * (1.0 + b.abs()),
+                "{derivative} {i}: {a} vs {b}"
+            );
+        }
+        // The planes' gradient of a fixed linear functional of every output.
+        let device = Device::flex().autodiff();
+        let t = planes(8, 5, 1.0, &device);
+        let k = taps.outputs;
+        let p = taps.points;
+        let mut rng = SplitMix64::new(12);
+        let r: Vec<f32> = (0..p * k * 5)
+            .map(|_| (rng.next_f64() - 0.5) as f32)
+            .collect();
+        let r = Tensor::<3>::from_data(TensorData::new(r, [p, k, 5]), &device);
+        let gradient = |out: Tensor<3>| {
+            let grads = (out * r.clone()).sum().backward();
+            to_f32_vec(t.planes.grad(&grads).unwrap())
+        };
+        let got = gradient(kernel::sample(t.planes.val(), taps.clone()));
+        let want = gradient(kernel::sample_reference(t.planes.val(), &taps));
+        let scale = want.iter().fold(0f32, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0);
+        for (i, (a, b)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-5 * scale,
+                "{derivative} row {}: {a} vs {b}",
+                i / 5
+            );
+        }
+    }
+}
+
+#[test]
+fn the_kernels_gradient_does_not_depend_on_the_thread_count() {
+    let device = Device::flex().autodiff();
+    let t = planes(6, 4, 1.0, &device);
+    // Enough points for several blocks of the backward.
+    let mut rng = SplitMix64::new(5);
+    let v: Vec<f32> = (0..3 * 5000)
+        .map(|_| (rng.next_f64() * 1.8 - 0.9) as f32)
+        .collect();
+    let taps = Arc::new(t.taps(&v, true));
+    let gradient = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let out = kernel::sample(t.planes.val(), taps.clone());
+            let grads = out.sum().backward();
+            to_f32_vec(t.planes.grad(&grads).unwrap())
+        })
+    };
+    let one = gradient(1);
+    assert_eq!(one, gradient(3), "bit for bit");
+    assert!(one.iter().any(|&g| g != 0.0));
 }
