@@ -27,6 +27,7 @@ use crate::mapping::MappingNetworkConfig;
 use crate::neiif::NeiifConfig;
 use crate::positional_encoding::PositionalEncodingConfig;
 use crate::relighting::RelightingConfig;
+use crate::template_planes::TAPS as TEMPLATE_TAPS;
 use crate::upsampler::UpsamplerConfig;
 
 /// Backward FLOPs per forward FLOP where a backward pass is not counted from shapes: input
@@ -81,17 +82,27 @@ fn modulation(w_dim: usize, d_in: usize, d_out: usize, batch: usize) -> f64 {
 /// start, so the head costs nothing more); the head when appearance is.
 pub fn field(c: &NeiifConfig, batch: usize, points: usize, wants: FieldWants) -> f64 {
     let n = batch * points;
+    let template = if c.template_resolution > 0 {
+        c.template_channels
+    } else {
+        0
+    };
     let encoded = PositionalEncodingConfig::new()
         .with_frequencies(c.frequencies)
         .init()
-        .output_dim();
+        .output_dim()
+        + template;
     let sweep = if wants.normals { 2 } else { 1 };
+    // The template planes' weighted gathers: a multiply-add per tap, channel and output (the
+    // features, and their three derivatives with normals); with normals, the sweep's fold
+    // (a multiply-add per channel and axis).
+    let (outputs, fold) = if wants.normals { (4, 6) } else { (1, 0) };
+    let mut total = (n * template * (2 * TEMPLATE_TAPS * outputs + fold)) as f64;
     let last = if wants.appearance {
         c.layers
     } else {
         c.density_layer
     };
-    let mut total = 0.0;
     for i in 0..last {
         let d_in = if i == 0 { encoded } else { c.width };
         let copies = if i < c.density_layer { sweep } else { 1 };
@@ -389,6 +400,23 @@ mod tests {
             + m(4.0, 4.0) + 2.0 * 10.0 * 16.0 // layer 3
             + 2.0 * 10.0 * 5.0 * 4.0 + 2.0 * 10.0 * 4.0 * 5.0; // head
         assert_eq!(field(&c, 1, 10, FieldWants::ALL), with_normals);
+        // Template planes of 2 channels: layer 1 takes 11 inputs, and the gathers cost 2 x
+        // 27 taps x 2 channels per output (1, or 4 with normals), the fold 6 x 2 per point.
+        let t = c
+            .clone()
+            .with_template_resolution(8)
+            .with_template_channels(2);
+        let density_only = m(11.0, 4.0)
+            + 2.0 * 10.0 * 4.0 * 11.0
+            + m(4.0, 4.0)
+            + 2.0 * 10.0 * 4.0 * 4.0
+            + 2.0 * 10.0 * 4.0
+            + 10.0 * 2.0 * 54.0;
+        assert_eq!(field(&t, 1, 10, FieldWants::DENSITY), density_only);
+        let extra = (m(11.0, 4.0) - m(9.0, 4.0))
+            + 2.0 * 2.0 * 10.0 * 4.0 * 2.0
+            + 10.0 * 2.0 * (54.0 * 4.0 + 6.0);
+        assert_eq!(field(&t, 1, 10, FieldWants::ALL), with_normals + extra);
     }
 
     #[test]

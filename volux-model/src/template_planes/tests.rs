@@ -300,3 +300,43 @@ fn the_kernels_gradient_does_not_depend_on_the_thread_count() {
     assert_eq!(one, gradient(3), "bit for bit");
     assert!(one.iter().any(|&g| g != 0.0));
 }
+
+#[test]
+fn extreme_points_clamp_and_a_nan_point_stays_its_own() {
+    let device = Device::flex();
+    let t = planes(8, 3, 1.0, &device);
+    let points = [
+        [1e30, -1e30, 0.0],
+        [f64::INFINITY, f64::NEG_INFINITY, 0.5],
+        [f64::NAN, 0.1, 0.2],
+        [0.3, 0.2, 0.1],
+    ];
+    let (values, derivatives) = t.forward(tensor(&points, &device), true);
+    let values = to_f32_vec(values);
+    let derivatives = derivatives.unwrap().map(to_f32_vec);
+    let values64: Vec<f64> = to_f32_vec(t.planes.val())
+        .iter()
+        .map(|&v| f64::from(v))
+        .collect();
+    for q in [0, 1, 3] {
+        let clamped = points[q].map(|x| x.clamp(-1.0, 1.0));
+        let want = reference(&values64, 8, 3, 1.0, clamped);
+        for ch in 0..3 {
+            let got = f64::from(values[q * 3 + ch]);
+            assert!(
+                (got - want[ch]).abs() < 1e-5 * (1.0 + want[ch].abs()),
+                "point {q}"
+            );
+        }
+        assert!(
+            derivatives
+                .iter()
+                .all(|d| d[q * 3..q * 3 + 3].iter().all(|v| v.is_finite()))
+        );
+    }
+    // Clamped axes have no derivative.
+    assert!(derivatives[0][..3].iter().all(|&v| v == 0.0));
+    assert!(derivatives[1][3..6].iter().all(|&v| v == 0.0));
+    // A NaN point gives NaN features, and only it.
+    assert!(values[6..9].iter().all(|v| v.is_nan()));
+}
