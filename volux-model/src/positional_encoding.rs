@@ -372,38 +372,6 @@ mod tests {
     }
 
     #[test]
-    fn rotated_encoding_matches_the_formula_in_f64() {
-        let device = Device::flex();
-        let enc = PositionalEncodingConfig::new()
-            .with_frequencies(5)
-            .with_rotated(true)
-            .init();
-        let x = [0.1f64, -0.7, 0.35];
-        let data: Vec<f32> = x.iter().map(|v| *v as f32).collect();
-        let out = to_f32_vec(enc.forward(Tensor::<2>::from_data(
-            TensorData::new(data, [1, 3]),
-            &device,
-        )));
-        let mut want: Vec<f64> = x.to_vec();
-        for k in 0..5 {
-            let r = octave_rotation(k);
-            let f = PI * 2f64.powi(k as i32);
-            let u: Vec<f64> = (0..3)
-                .map(|i| f * (0..3).map(|j| r[i][j] * x[j]).sum::<f64>())
-                .collect();
-            want.extend(u.iter().map(|v| v.sin()));
-            want.extend(u.iter().map(|v| v.cos()));
-        }
-        assert_eq!(out.len(), want.len());
-        for (i, (got, w)) in out.iter().zip(&want).enumerate() {
-            assert!(
-                (f64::from(*got) - w).abs() < 2e-5,
-                "feature {i}: {got} vs {w}"
-            );
-        }
-    }
-
-    #[test]
     fn octave_weights_open_smoothly_one_after_another() {
         assert_eq!(octave_weight(2.0, 2), 0.0);
         assert_eq!(octave_weight(2.0, 1), 1.0);
@@ -425,6 +393,12 @@ mod tests {
         assert_eq!(enc.weight(3), 1.0);
         enc.set_window(None);
         assert!((0..5).all(|k| enc.weight(k) == 1.0));
+    }
+
+    #[test]
+    fn rotated_encoding_matches_the_formula_in_f64() {
+        // A window past every octave is the open encoding.
+        check_windowed_formula(true, 5.0);
     }
 
     /// The encoding with `window` against its f64 formula, octave by octave.

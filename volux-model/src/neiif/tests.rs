@@ -29,6 +29,22 @@ fn points(n: usize, seed: u64, device: &Device) -> Tensor<3> {
     Tensor::from_data(TensorData::new(v, [1, n, 3]), device)
 }
 
+/// `values` as an f32 tensor of `shape` on `device`.
+fn tensor_of<const D: usize>(values: &[f64], shape: [usize; D], device: &Device) -> Tensor<D> {
+    let v: Vec<f32> = values.iter().map(|v| *v as f32).collect();
+    Tensor::from_data(TensorData::new(v, shape), device)
+}
+
+/// The fixed cotangent of `grad(sigma)` at `n` points and the fixed latent the second-order
+/// tests use.
+fn cotangent_and_latent(n: usize, device: &Device) -> (Tensor<3>, Vec<f64>) {
+    let r = normals(&mut SplitMix64::new(43), 3 * n);
+    (
+        tensor_of(&r, [1, n, 3], device),
+        normals(&mut SplitMix64::new(42), 16),
+    )
+}
+
 /// The reverse sweep's `grad(sigma)` against central differences of the density on random
 /// weights. `h` and the tolerance are set by the highest octave: central differences of
 /// `sin(2^(F-1) pi x)` have a truncation error `~ (2^(F-1) pi h)^2 / 6`.
@@ -47,12 +63,7 @@ fn check_windowed_gradient_of(config: NeiifConfig, window: Option<f64>, h: f64, 
     // Fixed weights and latent, so that the error measured here is the error of every run.
     let mut field = config.init(&device).map(&mut Reseed::new(21, DType::F32));
     field.encoding.set_window(window);
-    let w = normals(&mut SplitMix64::new(22), 16);
-    let w = Tensor::<1>::from_floats(
-        w.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
-        &device,
-    )
-    .reshape([1, 16]);
+    let w = tensor_of(&normals(&mut SplitMix64::new(22), 16), [1, 16], &device);
     let n = 24;
     let pts = points(n, 7, &device);
     let got = field.forward(pts.clone(), w.clone(), FieldWants::ALL);
@@ -102,20 +113,9 @@ fn a_loss_on_the_density_gradient_has_the_central_difference_gradient_in_w() {
     let field = small_with_prior(3, 10.0, &device).map(&mut Reseed::new(41, DType::F32));
     let n = 16;
     let pts = points(n, 9, &device);
-    let r = normals(&mut SplitMix64::new(43), 3 * n);
-    let r = Tensor::<1>::from_floats(
-        r.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
-        &device,
-    )
-    .reshape([1, n, 3]);
-    let w0 = normals(&mut SplitMix64::new(42), 16);
+    let (r, w0) = cotangent_and_latent(n, &device);
     let loss_at = |w: &[f64]| {
-        let w = Tensor::<1>::from_floats(
-            w.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
-            &device,
-        )
-        .reshape([1, 16])
-        .require_grad();
+        let w = tensor_of(w, [1, 16], &device).require_grad();
         let out = field.forward(pts.clone(), w.clone(), FieldWants::ALL);
         let loss = (out.grad_sigma.unwrap() * r.clone()).sum();
         (w, loss)
@@ -155,18 +155,8 @@ fn template_planes_give_the_central_difference_density_gradient_and_plane_gradie
     let mut field = config.init(&device).map(&mut Reseed::new(41, DType::F32));
     let n = 16;
     let pts = points(n, 9, &device);
-    let r = normals(&mut SplitMix64::new(43), 3 * n);
-    let r = Tensor::<1>::from_floats(
-        r.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
-        &device,
-    )
-    .reshape([1, n, 3]);
-    let w = normals(&mut SplitMix64::new(42), 16);
-    let w = Tensor::<1>::from_floats(
-        w.iter().map(|v| *v as f32).collect::<Vec<_>>().as_slice(),
-        &device,
-    )
-    .reshape([1, 16]);
+    let (r, w) = cotangent_and_latent(n, &device);
+    let w = tensor_of(&w, [1, 16], &device);
     let loss_of = |field: &Neiif| {
         let out = field.forward(pts.clone(), w.clone(), FieldWants::ALL);
         (out.grad_sigma.unwrap() * r.clone()).sum()

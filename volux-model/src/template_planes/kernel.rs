@@ -42,6 +42,20 @@ pub(crate) struct Taps {
     pub weights: Vec<f32>,
 }
 
+impl Taps {
+    /// Point `q`'s taps: where each tap's row starts in the planes' `[rows, channels]` values,
+    /// and the tap's weight of each output.
+    fn of_point(&self, q: usize, channels: usize) -> impl Iterator<Item = (usize, &[f32])> {
+        let k = self.outputs;
+        (q * TAPS..(q + 1) * TAPS).map(move |at| {
+            (
+                self.index[at] as usize * channels,
+                &self.weights[at * k..(at + 1) * k],
+            )
+        })
+    }
+}
+
 /// The weighted sums `[points, outputs, channels]` of the planes' rows (`[rows, channels]`)
 /// at `taps`, differentiable in the planes.
 pub(crate) fn sample(planes: Tensor<2>, taps: Arc<Taps>) -> Tensor<3> {
@@ -132,12 +146,8 @@ fn forward_flex(planes: &FlexTensor, taps: &Taps) -> FlexTensor {
         .for_each(|(task, out)| {
             let first = task * POINTS_PER_TASK;
             for (j, point_out) in out.chunks_exact_mut(k * c).enumerate() {
-                let q = first + j;
-                for t in 0..TAPS {
-                    let at = q * TAPS + t;
-                    let row = taps.index[at] as usize * c;
+                for (row, weights) in taps.of_point(first + j, c) {
                     let row = &planes[row..row + c];
-                    let weights = &taps.weights[at * k..(at + 1) * k];
                     for (&w, o) in weights.iter().zip(point_out.chunks_exact_mut(c)) {
                         for (o, &v) in o.iter_mut().zip(row) {
                             *o += w * v;
@@ -161,12 +171,8 @@ fn backward_flex(taps: &Taps, rows: usize, grad: &FlexTensor) -> FlexTensor {
             let mut partial = vec![0.0f32; rows * c];
             let first = task * POINTS_PER_TASK;
             for (j, point_grad) in grad.chunks_exact(k * c).enumerate() {
-                let q = first + j;
-                for t in 0..TAPS {
-                    let at = q * TAPS + t;
-                    let row = taps.index[at] as usize * c;
+                for (row, weights) in taps.of_point(first + j, c) {
                     let row = &mut partial[row..row + c];
-                    let weights = &taps.weights[at * k..(at + 1) * k];
                     for (&w, g) in weights.iter().zip(point_grad.chunks_exact(c)) {
                         for (r, &g) in row.iter_mut().zip(g) {
                             *r += w * g;
