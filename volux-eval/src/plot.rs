@@ -308,10 +308,10 @@ pub fn panels(metrics: &RunMetrics, axis: XAxis) -> Vec<Panel> {
             none,
         ),
         panel(
-            "Regularisers (R1, path length)",
+            "Regularisers (R1, path length, density)",
             t,
             axis,
-            |k| k.starts_with("R1_") || k == "path",
+            |k| k.starts_with("R1_") || k == "path" || k == "density_reg",
             none,
         ),
         panel(

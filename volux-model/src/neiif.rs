@@ -112,6 +112,10 @@ pub struct NeiifConfig {
     /// Features of the tri-plane.
     #[config(default = 8)]
     pub template_channels: usize,
+    /// Half the side of the square each plane covers (world units): the control points span
+    /// `[-template_bound, template_bound]`, and a point outside is clamped onto the edge.
+    #[config(default = 1.0)]
+    pub template_bound: f64,
 }
 
 /// The field.
@@ -193,6 +197,7 @@ impl NeiifConfig {
         let template = (self.template_resolution > 0).then(|| {
             TemplatePlanesConfig::new(self.template_resolution)
                 .with_channels(self.template_channels)
+                .with_bound(self.template_bound)
                 .init(device)
         });
         let template_dim = template.as_ref().map_or(0, |t| t.channels);

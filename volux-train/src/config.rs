@@ -61,6 +61,10 @@ pub const MAX_TEMPLATE_RESOLUTION: usize = 256;
 /// The most `[model] template_channels` (EG3D's planes have 32).
 pub const MAX_TEMPLATE_CHANNELS: usize = 64;
 
+/// The largest `[model] template_bound`: every ray sample lies within radius 1.4 of the
+/// origin (camera at 2.7, rays end at 3.3), so wider planes only waste control points.
+pub const MAX_TEMPLATE_BOUND: f64 = 4.0;
+
 /// The largest `[model] d_channel_max`: StyleGAN2's largest configs use 512; a 3x3
 /// convolution of 4096 channels already holds 600 MB of weights.
 pub const MAX_D_CHANNEL_MAX: usize = 4096;
@@ -134,6 +138,10 @@ pub struct ModelConfig {
     /// Features of that tri-plane (8 if absent).
     #[serde(default)]
     pub template_channels: Option<usize>,
+    /// Half the side of the square each of its planes covers, world units (1 if absent):
+    /// the control points span `[-template_bound, template_bound]`.
+    #[serde(default)]
+    pub template_bound: Option<f64>,
 }
 
 /// The `[model] encoding` key.
@@ -252,6 +260,14 @@ impl ModelConfig {
                 ));
             }
             g.neiif.template_channels = n;
+        }
+        if let Some(b) = self.template_bound {
+            if !(b.is_finite() && b > 0.0 && b <= MAX_TEMPLATE_BOUND) {
+                return Err(format!(
+                    "model.template_bound = {b:?} must be in (0, {MAX_TEMPLATE_BOUND}]"
+                ));
+            }
+            g.neiif.template_bound = b;
         }
         if let Some(n) = self.mapping_layers {
             if !(1..=MAX_MAPPING_LAYERS).contains(&n) {

@@ -1,13 +1,13 @@
 //! The adversarial losses of the paper (section 3.4; docs/conventions.md, "Losses"):
 //! StyleGAN2's non-saturating logistic loss for every discriminator, lazily regularised R1 on
-//! reals, the path loss tying the low- and high-resolution albedo, and the weights of the four
-//! adversarial terms.
+//! reals, the path loss tying the low- and high-resolution albedo, EG3D's density
+//! regulariser (an option, not in the paper), and the weights of the terms.
 //!
 //! Every loss is a mean over the batch, `[1]`. Softplus is Burn's, which stays finite for
 //! logits of any size (it returns `x` itself above a threshold).
 
-use burn::tensor::Tensor;
 use burn::tensor::activation::{sigmoid, softplus};
+use burn::tensor::{Device, Distribution, Tensor};
 use serde::{Deserialize, Serialize};
 use volux_data::layers::{Layer, Layers};
 use volux_model::discriminator::{Discriminator, r1_penalty};
@@ -64,6 +64,41 @@ pub fn path_loss(albedo_lo: Tensor<4>, albedo_hi: Tensor<4>) -> Tensor<1> {
         .mean()
 }
 
+/// Half the side of the cube [`density_regulariser_points`] draws from (world units): every
+/// ray sample of a training camera lies within it (docs/model.md, "Template planes").
+pub const DENSITY_REGULARISER_REACH: f64 = 0.8;
+
+/// Points per batch element [`density_regulariser_points`] draws (EG3D's 1000).
+pub const DENSITY_REGULARISER_POINTS: usize = 1000;
+
+/// EG3D's density regulariser: for `sigma: [b, 2n]` the density at `n` points and then at
+/// the same points moved by a small offset ([`density_regulariser_points`]),
+/// `mean |sigma(x) - sigma(x + e)|`, an L1 total variation of the density sampled
+/// everywhere in the volume. A speck of density has a large boundary for its size, so it
+/// costs more than a surface does; empty space costs nothing. On the density itself, not
+/// its logit: the sphere prior's slope is in every logit, and would turn the term into a
+/// push against it.
+pub fn density_regulariser(sigma: Tensor<2>) -> Tensor<1> {
+    let n = sigma.dims()[1] / 2;
+    (sigma.clone().narrow(1, 0, n) - sigma.narrow(1, n, n))
+        .abs()
+        .mean()
+}
+
+/// `[batch, 2 n, 3]` points for [`density_regulariser`]: per element, `n` drawn uniformly
+/// in `[-reach, reach]^3`, then the same `n` each moved by `N(0, spread^2)` per coordinate.
+pub fn density_regulariser_points(
+    batch: usize,
+    n: usize,
+    reach: f64,
+    spread: f64,
+    device: &Device,
+) -> Tensor<3> {
+    let x = Tensor::<3>::random([batch, n, 3], Distribution::Uniform(-reach, reach), device);
+    let e = Tensor::<3>::random([batch, n, 3], Distribution::Normal(0.0, spread), device);
+    Tensor::cat(vec![x.clone(), x + e], 1)
+}
+
 /// What `D_S` sees: the relit image with the diffuse and specular maps it was shaded with,
 /// detached (the paper's conditioning), HDR shading through `log1p` as in the relighting
 /// network. `[b, 9, H, W]`.
@@ -107,6 +142,10 @@ pub fn real_shading_condition(
     )
 }
 
+/// The largest `[loss] density_reg_spread`: offsets of a whole head would compare the
+/// density of unrelated points.
+pub const MAX_DENSITY_REG_SPREAD: f64 = 0.5;
+
 /// Weights of the loss terms (`[loss]` in a training config). A weight of 0 turns its term
 /// off, and with it its discriminator and the renders only it needs.
 #[derive(Clone, Copy, Debug, PartialEq, Deserialize, Serialize)]
@@ -122,6 +161,13 @@ pub struct LossWeights {
     pub photo: f64,
     /// L1 between `A_lo` and the downsampled `A_hi`.
     pub path: f64,
+    /// EG3D's density regulariser ([`density_regulariser`]; EG3D's `density_reg`, 0.25 on
+    /// FFHQ); 0, the default and the paper's: none.
+    pub density_reg: f64,
+    /// The standard deviation of its offsets, world units (EG3D's `density_reg_p_dist`
+    /// is 0.004 of a box about 0.6 heads wide; this one is 0.01 of a box 2 heads wide, about
+    /// a third of a 32-pixel volume's pixel).
+    pub density_reg_spread: f64,
 }
 
 impl Default for LossWeights {
@@ -132,6 +178,8 @@ impl Default for LossWeights {
             shading: 0.25,
             photo: 0.75,
             path: 0.5,
+            density_reg: 0.0,
+            density_reg_spread: 0.01,
         }
     }
 }
@@ -147,17 +195,24 @@ impl LossWeights {
                 ));
             }
         }
+        let spread = self.density_reg_spread;
+        if !(spread.is_finite() && spread > 0.0 && spread <= MAX_DENSITY_REG_SPREAD) {
+            return Err(format!(
+                "loss.density_reg_spread = {spread:?} must be in (0, {MAX_DENSITY_REG_SPREAD}]"
+            ));
+        }
         Ok(())
     }
 
     /// `(name, weight)` of every term.
-    pub fn named(&self) -> [(&'static str, f64); 5] {
+    pub fn named(&self) -> [(&'static str, f64); 6] {
         [
             ("albedo", self.albedo),
             ("geometry", self.geometry),
             ("shading", self.shading),
             ("photo", self.photo),
             ("path", self.path),
+            ("density_reg", self.density_reg),
         ]
     }
 
@@ -418,7 +473,7 @@ mod tests {
     fn weights_default_to_the_papers_and_reject_bad_values() {
         assert_eq!(
             LossWeights::default().named().map(|(_, w)| w),
-            [1.0, 0.5, 0.25, 0.75, 0.5]
+            [1.0, 0.5, 0.25, 0.75, 0.5, 0.0]
         );
         let w: LossWeights = toml::from_str("photo = 0.0").unwrap();
         assert_eq!((w.photo, w.albedo), (0.0, 1.0));
@@ -433,5 +488,74 @@ mod tests {
             ..LossWeights::default()
         };
         assert!(bad.validate().unwrap_err().contains("loss.shading"));
+        for spread in [0.0, -0.01, f64::NAN, f64::INFINITY, 0.6] {
+            let bad = LossWeights {
+                density_reg_spread: spread,
+                ..LossWeights::default()
+            };
+            let why = bad.validate().unwrap_err();
+            assert!(why.contains("loss.density_reg_spread"), "{why}");
+        }
+        let w: LossWeights = toml::from_str("density_reg = 0.25").unwrap();
+        assert_eq!((w.density_reg, w.density_reg_spread), (0.25, 0.01));
+        assert!(w.validate().is_ok());
+    }
+
+    /// The regulariser is `mean |sigma(x) - sigma(x + e)|` (against f64), its gradient
+    /// `sign / (b n)` on the first half and the opposite on the second; the points are the
+    /// cube's, then the same points moved by offsets of the spread asked.
+    #[test]
+    fn density_regulariser_is_the_mean_absolute_difference_of_its_point_pairs() {
+        let device = Device::flex().autodiff();
+        device.seed(5);
+        let (b, n) = (2, 7);
+        let values: Vec<f32> = (0..b * 2 * n)
+            .map(|i| ((i * 37 % 11) as f32 - 5.0) * 0.3)
+            .collect();
+        let sigma = Tensor::<2>::from_data(TensorData::new(values.clone(), [b, 2 * n]), &device)
+            .require_grad();
+        let loss = density_regulariser(sigma.clone());
+        let mut want = 0.0f64;
+        let mut grad = vec![0.0f64; b * 2 * n];
+        for e in 0..b {
+            for i in 0..n {
+                let (a, c) = (e * 2 * n + i, e * 2 * n + n + i);
+                let d = f64::from(values[a]) - f64::from(values[c]);
+                want += d.abs() / (b * n) as f64;
+                grad[a] = d.signum() / (b * n) as f64;
+                grad[c] = -d.signum() / (b * n) as f64;
+            }
+        }
+        assert!((scalar(loss.clone()) - want).abs() <= 1e-6, "{want}");
+        let got = to_f32_vec(sigma.grad(&loss.backward()).unwrap());
+        for (g, w) in got.iter().zip(&grad) {
+            assert!((f64::from(*g) - w).abs() <= 1e-7, "{g} vs {w}");
+        }
+
+        let device = Device::flex();
+        device.seed(6);
+        let (b, n, reach, spread) = (3, 4000, 0.8, 0.01);
+        let points = density_regulariser_points(b, n, reach, spread, &device);
+        assert_eq!(points.dims(), [b, 2 * n, 3]);
+        let p = to_f32_vec(points);
+        let (mut sum, mut square, mut count) = (0.0f64, 0.0f64, 0usize);
+        for e in 0..b {
+            for i in 0..n {
+                for k in 0..3 {
+                    let x = f64::from(p[(e * 2 * n + i) * 3 + k]);
+                    let moved = f64::from(p[(e * 2 * n + n + i) * 3 + k]);
+                    assert!(x.abs() <= reach, "{x} outside the cube");
+                    sum += moved - x;
+                    square += (moved - x).powi(2);
+                    count += 1;
+                }
+            }
+        }
+        let mean = sum / count as f64;
+        let sd = (square / count as f64 - mean * mean).sqrt();
+        assert!(
+            mean.abs() < 1e-3 && (sd / spread - 1.0).abs() < 0.05,
+            "{mean} {sd}"
+        );
     }
 }

@@ -34,7 +34,7 @@ pub struct ShippedModel {
 pub const SHIPPED: &[ShippedModel] = &[ShippedModel {
     name: "quickstart",
     folder: "assets/models/quickstart",
-    about: "configs/quickstart.toml, 30 minutes on 2 CPU cores (9.1 kimg): faces in the geometry (brow, eye sockets, nose, mouth), one face shape for every seed",
+    about: "configs/quickstart.toml, 30 minutes on 2 CPU cores (9.0 kimg): faces in the geometry (brow, eye sockets, nose, mouth), one face shape for every seed, SWD within 2x of the data's",
     state: include_str!("../../assets/models/quickstart/state.toml"),
     generator_ema: include_bytes!("../../assets/models/quickstart/generator_ema.bpk"),
 }];

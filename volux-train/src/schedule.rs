@@ -77,6 +77,8 @@ pub struct ActiveTerms {
     pub shading: bool,
     pub photo: bool,
     pub path: bool,
+    /// The density regulariser (`[loss] density_reg`), in both stages.
+    pub density: bool,
 }
 
 impl ActiveTerms {
@@ -169,6 +171,7 @@ impl ScheduleConfig {
             albedo: stage != Stage::Done && weights.albedo > 0.0,
             geometry: stage != Stage::Done && weights.geometry > 0.0,
             path: stage != Stage::Done && weights.path > 0.0,
+            density: stage != Stage::Done && weights.density_reg > 0.0,
             shading: two && weights.shading > 0.0,
             photo: two && weights.photo > 0.0,
         }
@@ -276,6 +279,16 @@ mod tests {
             ..w
         };
         assert!(!s.active(15_000, &only_albedo).needs_relit());
+        assert!(
+            !one.density && !two.density,
+            "no density regulariser unless asked"
+        );
+        let density = LossWeights {
+            density_reg: 0.25,
+            ..w
+        };
+        assert!(s.active(0, &density).density && s.active(10_000, &density).density);
+        assert!(!s.active(30_000, &density).density);
         assert_eq!(s.active(30_000, &w), ActiveTerms::default());
     }
 

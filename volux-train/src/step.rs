@@ -1,5 +1,5 @@
 //! One training step (paper section 3.4): a generator phase (every active adversarial term
-//! plus the path loss, one Adam step of `G`), then a discriminator phase on the same fakes,
+//! plus the path loss and, if asked, the density regulariser; one Adam step of `G`), then a discriminator phase on the same fakes,
 //! detached (one Adam step of every active discriminator, with lazy R1 on reals every
 //! `r1_interval` steps). A step whose loss or updated weights are not finite changes nothing.
 //!
@@ -28,19 +28,22 @@ use burn::tensor::{Device, Tensor};
 use rayon::prelude::*;
 use volux_data::batch::BatchTensors;
 use volux_model::discriminator::Discriminator;
+use volux_model::field::{Field, FieldWants};
 use volux_model::flex_extension::{Route, route};
 use volux_model::flops;
 use volux_model::generated::GeneratorWants;
 use volux_model::generator::{Generator, GeneratorError};
 use volux_model::light_lookup::Lighting;
+use volux_model::neiif::LatentField;
 use volux_model::pose::Pose;
 use volux_model::presets::{ByRole, DiscriminatorRole};
 use volux_model::profile::{self, Phase as ProfilePhase};
 
 use crate::config::TrainConfig;
 use crate::losses::{
-    LossWeights, discriminator_loss, generator_loss, generator_loss_gradient, lazy_r1, path_loss,
-    real_shading_condition, shading_condition_lo,
+    DENSITY_REGULARISER_POINTS, DENSITY_REGULARISER_REACH, LossWeights, density_regulariser,
+    density_regulariser_points, discriminator_loss, generator_loss, generator_loss_gradient,
+    lazy_r1, path_loss, real_shading_condition, shading_condition_lo,
 };
 use crate::networks::{Discriminators, all_finite};
 use crate::progressive::faded_input;
@@ -205,11 +208,12 @@ pub fn generator_wants(a: ActiveTerms) -> GeneratorWants {
     }
 }
 
-/// Runs the generator for the active terms and returns the fakes and the path loss.
-fn generate(
-    g: &Generator,
-    inputs: &StepInputs,
-) -> Result<(Fakes, Option<Tensor<1>>), GeneratorError> {
+/// The generator's terms that no discriminator judges, unweighted, by name: the path loss
+/// and the density regulariser, where active.
+type Regularisers = Vec<(&'static str, f64, Tensor<1>)>;
+
+/// Runs the generator for the active terms and returns the fakes and the regularisers.
+fn generate(g: &Generator, inputs: &StepInputs) -> Result<(Fakes, Regularisers), GeneratorError> {
     let a = inputs.active;
     let wants = generator_wants(a);
     let out = g.forward(
@@ -221,10 +225,26 @@ fn generate(
         inputs.fade.as_deref(),
         true,
     )?;
-    let path = match (a.path, &out.layers.albedo_lo, &out.layers.albedo_hi) {
-        (true, Some(lo), Some(hi)) => Some(path_loss(lo.clone(), hi.clone())),
-        _ => None,
-    };
+    let w = inputs.weights;
+    let mut regularisers = Regularisers::new();
+    if let (true, Some(lo), Some(hi)) = (a.path, &out.layers.albedo_lo, &out.layers.albedo_hi) {
+        regularisers.push(("path", w.path, path_loss(lo.clone(), hi.clone())));
+    }
+    if a.density {
+        let points = density_regulariser_points(
+            out.w.dims()[0],
+            DENSITY_REGULARISER_POINTS,
+            DENSITY_REGULARISER_REACH,
+            w.density_reg_spread,
+            &out.w.device(),
+        );
+        let field = LatentField {
+            field: &g.neiif,
+            w: out.w.clone(),
+        };
+        let sigma = field.query(points, FieldWants::DENSITY).sigma;
+        regularisers.push(("density_reg", w.density_reg, density_regulariser(sigma)));
+    }
     let shading = match (
         a.shading,
         &out.layers.relit,
@@ -243,7 +263,7 @@ fn generate(
         shading,
         photo: out.layers.relit.filter(|_| a.photo),
     };
-    Ok((fakes, path))
+    Ok((fakes, regularisers))
 }
 
 /// The discriminators' verdict on the fakes, for both phases.
@@ -453,7 +473,7 @@ pub fn train_step(
     let fade = inputs.fade.as_deref().filter(|_| inputs.fade_discriminator);
 
     // Generator phase: every active discriminator's verdict on the fakes and its pullback.
-    let (fakes, path) = generate(g, inputs)?;
+    let (fakes, regularisers) = generate(g, inputs)?;
     let judged = pairs(d, &fakes, Some(inputs.reals), &w, fade);
     let Verdicts {
         value: mut g_value,
@@ -462,11 +482,11 @@ pub fn train_step(
     } = profile::timed(ProfilePhase::DiscriminatorsOnFakes, || {
         judge(&judged, inputs.side_by_side, &mut outcome)
     });
-    if let Some(p) = path {
-        let value = scalar(&p);
-        outcome.losses.insert("path", value);
-        g_value += w.path * value;
-        add(&mut g_root, p.mul_scalar(w.path));
+    for (name, weight, term) in regularisers {
+        let value = scalar(&term);
+        outcome.losses.insert(name, value);
+        g_value += weight * value;
+        add(&mut g_root, term.mul_scalar(weight));
     }
     let Some(g_root) = g_root else {
         return Ok(outcome);

@@ -3,7 +3,7 @@ use super::*;
 /// A log of two training groups and two evaluations, one training value NaN (`null`).
 const LOG: &str = r#"{"step":0,"images":0,"kimg":0.0,"minutes":0.0,"eval_seconds":2.0,"eval":{"swd_albedo":90.0,"swd_albedo_floor":20.0,"multiview_albedo_psnr":20.0,"multiview_albedo_psnr_data":31.0}}
 {"step":10,"images":40,"kimg":0.04,"minutes":0.5,"stage":1,"images_per_sec":1.5,"losses":{"G_total":0.7,"D_total":1.3,"R1_photo":null}}
-{"step":20,"images":80,"kimg":0.08,"minutes":1.0,"stage":1,"images_per_sec":1.7,"losses":{"G_total":0.9,"D_total":1.1,"R1_photo":0.2}}
+{"step":20,"images":80,"kimg":0.08,"minutes":1.0,"stage":1,"images_per_sec":1.7,"losses":{"G_total":0.9,"D_total":1.1,"R1_photo":0.2,"density_reg":0.05}}
 {"step":20,"images":80,"kimg":0.08,"minutes":1.1,"eval_seconds":2.0,"eval":{"swd_albedo":60.0,"swd_albedo_floor":20.0,"multiview_albedo_psnr":22.0,"multiview_albedo_psnr_data":31.0}}
 "#;
 
@@ -53,6 +53,8 @@ fn panels_pair_each_score_with_its_reference_in_one_colour() {
         .find(|p| p.title.starts_with("Regularisers"))
         .unwrap();
     assert_eq!(r1.curves[0].points, vec![(1.0, 0.2)]);
+    let density = r1.curves.iter().find(|c| c.name == "density_reg").unwrap();
+    assert_eq!(density.points, vec![(1.0, 0.05)]);
 }
 
 #[test]

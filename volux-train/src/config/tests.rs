@@ -129,6 +129,23 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
         [3 * 16 * 16, 4]
     );
     assert!(planes.shapes().contains("template_resolution = 16"));
+    assert_eq!(
+        g.neiif.template_bound, 1.0,
+        "planes over [-1, 1] unless asked"
+    );
+    let text = TINY.replace(
+        "\"small\"",
+        "\"small\"\ntemplate_resolution = 16\ntemplate_bound = 0.6",
+    );
+    let narrow = load(&text).unwrap();
+    assert_eq!(narrow.generator().neiif.template_bound, 0.6);
+    let field = narrow.generator().neiif.init(&burn::tensor::Device::flex());
+    assert_eq!(field.template.as_ref().unwrap().bound, 0.6);
+    assert_ne!(
+        narrow.shapes(),
+        planes.shapes(),
+        "a resume must match the bound"
+    );
     // The encoding: the paper's unless asked; part of what a resume must match.
     assert!(!load(TINY).unwrap().generator().neiif.rotated_encoding);
     for (key, rotated) in [("axis-aligned", false), ("rotated", true)] {
@@ -233,6 +250,18 @@ fn bad_configs_name_the_file_and_the_key() {
                 "\"small\"\ntemplate_resolution = 8\ntemplate_channels = 0",
             ),
             "model.template_channels = 0",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\ntemplate_bound = 0.0"),
+            "model.template_bound = 0.0",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\ntemplate_bound = nan"),
+            "model.template_bound = NaN",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\ntemplate_bound = 5.0"),
+            "model.template_bound = 5.0",
         ),
         (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
         (

@@ -233,3 +233,80 @@ fn each_discriminator_gets_reals_and_fakes_through_the_same_door() {
     let (fake, real) = find(&grown, DiscriminatorRole::AlbedoHigh);
     assert!(same(&real, reals.albedo_hi.clone()) && same(&fake, fake_hi));
 }
+
+/// The density regulariser joins the generator's terms only when asked; on a fresh field
+/// (the sphere prior's soft ball) it is finite and positive, and its gradient reaches the
+/// field's first layer, the template planes and, through `w`, the mapping network.
+#[test]
+fn the_density_regulariser_is_a_term_of_the_generator_only_when_asked() {
+    let device = Device::flex().autodiff();
+    device.seed(3);
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/quickstart.toml");
+    let config = TrainConfig::load(&path).unwrap();
+    let gc = config.generator();
+    let g = gc.init(&device).unwrap();
+    let reals: BatchTensors = Layers::from_fn(|_| None);
+    let poses = [Pose::default()];
+    let z = Tensor::<2>::random(
+        [1, gc.mapping.z_dim],
+        Distribution::Normal(0.0, 1.0),
+        &device,
+    );
+    let run = |density: bool| {
+        let inputs = StepInputs {
+            z: z.clone(),
+            poses: &poses,
+            lighting: None,
+            reals: &reals,
+            background: [1.0; 3],
+            active: ActiveTerms {
+                path: true,
+                density,
+                ..ActiveTerms::default()
+            },
+            weights: LossWeights {
+                density_reg: 0.25,
+                ..config.loss
+            },
+            fade: None,
+            fade_discriminator: false,
+            r1: None,
+            lr_g: 0.0,
+            lr_d: 0.0,
+            side_by_side: false,
+            poison: None,
+        };
+        generate(&g, &inputs).unwrap().1
+    };
+    let names = |r: &Regularisers| r.iter().map(|(n, w, _)| (*n, *w)).collect::<Vec<_>>();
+    assert_eq!(names(&run(false)), [("path", 0.5)]);
+    let with = run(true);
+    assert_eq!(names(&with), [("path", 0.5), ("density_reg", 0.25)]);
+    let term = with[1].2.clone();
+    let value = scalar(&term);
+    assert!(value.is_finite() && value > 0.0, "{value}");
+    let grads = term.backward();
+    let nonzero = |g: Option<Vec<f32>>, what: &str| {
+        let g = g.unwrap_or_else(|| panic!("{what}: no gradient"));
+        assert!(g.iter().all(|v| v.is_finite()), "{what}");
+        assert!(g.iter().any(|&v| v != 0.0), "{what}: all zero");
+    };
+    nonzero(
+        g.neiif.layers[0].weight.val().grad(&grads).map(to_f32_vec),
+        "first layer",
+    );
+    let planes = g
+        .neiif
+        .template
+        .as_ref()
+        .expect("the quickstart has planes");
+    nonzero(planes.planes.val().grad(&grads).map(to_f32_vec), "planes");
+    nonzero(
+        g.mapping.layers[0]
+            .weight
+            .val()
+            .grad(&grads)
+            .map(to_f32_vec),
+        "mapping",
+    );
+}
