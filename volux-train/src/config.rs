@@ -61,8 +61,9 @@ pub const MAX_TEMPLATE_RESOLUTION: usize = 256;
 /// The most `[model] template_channels` (EG3D's planes have 32).
 pub const MAX_TEMPLATE_CHANNELS: usize = 64;
 
-/// The largest `[model] template_bound`: every ray sample lies within radius 1.4 of the
-/// origin (camera at 2.7, rays end at 3.3), so wider planes only waste control points.
+/// The largest `[model] template_bound`: every ray sample of the default camera lies within
+/// about 0.8 of the origin (docs/model.md, "Template planes"), so much wider planes only
+/// spread their control points where no ray goes.
 pub const MAX_TEMPLATE_BOUND: f64 = 4.0;
 
 /// The largest `[model] d_channel_max`: StyleGAN2's largest configs use 512; a 3x3
