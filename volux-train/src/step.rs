@@ -1,7 +1,7 @@
 //! One training step (paper section 3.4): a generator phase (every active adversarial term
-//! plus the path loss and, if asked, the density regulariser; one Adam step of `G`), then a discriminator phase on the same fakes,
-//! detached (one Adam step of every active discriminator, with lazy R1 on reals every
-//! `r1_interval` steps). A step whose loss or updated weights are not finite changes nothing.
+//! plus the path loss and, if asked, the density regulariser; one Adam step of `G`), then a
+//! discriminator phase on the same fakes, detached (one Adam step of every active
+//! discriminator, with lazy R1 on reals every `r1_interval` steps). A step whose loss or updated weights are not finite changes nothing.
 //!
 //! Fakes are lit with the real batch's lighting and seen from the cameras of
 //! [`crate::fake_poses`] (by default the reals' own when the dataset has poses, else a prior).

@@ -16,6 +16,29 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     ]
 }
 
+/// The connected piece of each vertex (vertices joined by the triangles' edges), as the index
+/// of one vertex of its piece: union-find with path halving.
+fn pieces(mesh: &Mesh) -> Vec<usize> {
+    let mut parent: Vec<usize> = (0..mesh.positions.len()).collect();
+    fn root(parent: &mut [usize], mut v: usize) -> usize {
+        while parent[v] != v {
+            parent[v] = parent[parent[v]];
+            v = parent[v];
+        }
+        v
+    }
+    for t in &mesh.triangles {
+        for k in 1..3 {
+            let (a, b) = (
+                root(&mut parent, t[0] as usize),
+                root(&mut parent, t[k] as usize),
+            );
+            parent[a] = b;
+        }
+    }
+    (0..parent.len()).map(|v| root(&mut parent, v)).collect()
+}
+
 /// Area-weighted face normals summed at each vertex, normalised: the mesh's own normals.
 fn geometric_normals(mesh: &Mesh) -> Vec<[f64; 3]> {
     let mut sum = vec![[0.0f64; 3]; mesh.positions.len()];
@@ -209,19 +232,28 @@ fn the_shipped_heads_field_normals_agree_with_their_meshes() {
     angles.sort_by(f64::total_cmp);
     let median = angles[angles.len() / 2];
     assert!(median < 15.0, "median angle {median} deg");
-    // A head, not a box: hardly a vertex near the cube's sides, front, back or top (the neck
-    // may leave through the bottom, where the faces close it). Hardly, not none: the shipped
-    // model's template planes leave a few specks of density beside the head (docs/RESULTS.md,
-    // "Latest"), and the mesh keeps them.
-    let near_sides = mesh
-        .positions
-        .iter()
-        .filter(|p| p[0].abs() >= 0.45 || p[2].abs() >= 0.45 || p[1] >= 0.45)
-        .count();
+    // A head, not a box: the head, the mesh's largest piece, holds nearly every vertex and
+    // none near the cube's sides, front, back or top (the neck may leave through the bottom,
+    // where the faces close it). The other pieces are the specks of density the shipped
+    // model's template planes leave beside the head (docs/RESULTS.md, "Latest"): few, and
+    // the mesh keeps them.
+    let piece = pieces(mesh);
+    let mut sizes = std::collections::HashMap::new();
+    for &r in &piece {
+        *sizes.entry(r).or_insert(0usize) += 1;
+    }
+    let (&head, &head_size) = sizes.iter().max_by_key(|&(_, &n)| n).unwrap();
     assert!(
-        near_sides * 100 <= mesh.positions.len(),
-        "{near_sides} of {} vertices near the cube's sides",
+        head_size * 100 >= 98 * mesh.positions.len(),
+        "the head holds {head_size} of {} vertices",
         mesh.positions.len()
+    );
+    assert!(
+        mesh.positions
+            .iter()
+            .zip(&piece)
+            .filter(|&(_, &r)| r == head)
+            .all(|(p, _)| p[0].abs() < 0.45 && p[2].abs() < 0.45 && p[1] < 0.45)
     );
     assert!(out.level > 0.0 && out.level < out.max);
 }
