@@ -781,6 +781,7 @@ fn the_shipped_model_samples_by_name_from_any_folder() {
     let t = text(&o);
     assert!(o.status.success(), "{t}");
     assert!(t.contains("triangles") && t.contains("frontal"), "{t}");
+    assert!(t.contains("left out"), "{t}");
     let ply = std::fs::read(dir.path().join("head.ply")).unwrap();
     assert!(ply.starts_with(b"ply\nformat binary_little_endian 1.0\n"));
     let o = run(&[
@@ -803,6 +804,8 @@ fn the_shipped_model_samples_by_name_from_any_folder() {
     for (flag, value, expected) in [
         ("--resolution", "8", "--resolution 8"),
         ("--threshold", "-1", "--threshold -1"),
+        ("--min-piece", "-0.1", "--min-piece -0.1"),
+        ("--min-piece", "1.5", "--min-piece 1.5"),
         ("--out", "head.stl", "head.stl"),
     ] {
         let mut args = vec![

@@ -35,6 +35,10 @@ pub struct MeshArgs {
     /// the surface.
     #[arg(long, allow_hyphen_values = true)]
     pub threshold: Option<f64>,
+    /// Leave out connected pieces with fewer than this fraction of the largest piece's
+    /// vertices (specks of density beside the head); 0 keeps every piece.
+    #[arg(long, default_value_t = MeshOptions::MIN_PIECE, allow_hyphen_values = true)]
+    pub min_piece: f64,
     /// Compute backend: cpu or wgpu.
     #[arg(long, default_value = "cpu")]
     pub backend: BackendKind,
@@ -62,15 +66,22 @@ fn mesh(args: MeshArgs) -> anyhow::Result<()> {
     let options = MeshOptions {
         resolution: args.resolution,
         threshold: args.threshold,
+        min_piece: args.min_piece,
     };
     let made = generator_mesh(&model, args.seed, options)
         .with_context(|| format!("seed {} at --resolution {}", args.seed, args.resolution))?;
     save_mesh(&args.out, &made.mesh)?;
+    let pieces = made.pieces;
     println!(
-        "wrote {}: {} vertices, {} triangles; iso-level {:.4} ({}; density {:.3e} to {:.3e} on the grid) in {:.1} s",
+        "wrote {}: {} vertices, {} triangles in {} piece{}, {} smaller piece{} ({} vertices) left out; iso-level {:.4} ({}; density {:.3e} to {:.3e} on the grid) in {:.1} s",
         args.out.display(),
         made.mesh.positions.len(),
         made.mesh.triangles.len(),
+        pieces.kept,
+        if pieces.kept == 1 { "" } else { "s" },
+        pieces.dropped,
+        if pieces.dropped == 1 { "" } else { "s" },
+        pieces.dropped_vertices,
         made.level,
         if args.threshold.is_some() {
             "given"

@@ -98,6 +98,12 @@ pub fn field(c: &NeiifConfig, batch: usize, points: usize, wants: FieldWants) ->
     // (a multiply-add per channel and axis).
     let (outputs, fold) = if wants.normals { (4, 6) } else { (1, 0) };
     let mut total = (n * template * (2 * TEMPLATE_TAPS * outputs + fold)) as f64;
+    if template > 0 && c.template_basis > 0 {
+        // Each latent's planes: its coefficients, then the basis weighted and added.
+        let rows = 3 * c.template_resolution * c.template_resolution;
+        total += matmul(batch, c.template_basis, c.w_dim)
+            + matmul(batch, rows * template, c.template_basis);
+    }
     let last = if wants.appearance {
         c.layers
     } else {
@@ -417,6 +423,14 @@ mod tests {
             + 2.0 * 2.0 * 10.0 * 4.0 * 2.0
             + 10.0 * 2.0 * (54.0 * 4.0 + 6.0);
         assert_eq!(field(&t, 1, 10, FieldWants::ALL), with_normals + extra);
+        // A basis of 3 sets: the coefficients (3 x 2 multiply-adds of w per latent) and 3
+        // multiply-adds per entry of the 192 x 2 planes, for each of 2 latents.
+        let b = t.clone().with_template_basis(3);
+        let basis = 2.0 * (2.0 * 3.0 * 2.0) + 2.0 * (2.0 * 3.0 * 192.0 * 2.0);
+        assert_eq!(
+            field(&b, 2, 10, FieldWants::DENSITY),
+            field(&t, 2, 10, FieldWants::DENSITY) + basis
+        );
     }
 
     #[test]

@@ -116,6 +116,10 @@ pub struct NeiifConfig {
     /// `[-template_bound, template_bound]`, and a point outside is clamped onto the edge.
     #[config(default = 1.0)]
     pub template_bound: f64,
+    /// Planes each latent weights and adds to the tri-plane (see
+    /// [`crate::template_planes::PlaneBasis`]); 0: one tri-plane for every latent.
+    #[config(default = 0)]
+    pub template_basis: usize,
 }
 
 /// The field.
@@ -198,6 +202,8 @@ impl NeiifConfig {
             TemplatePlanesConfig::new(self.template_resolution)
                 .with_channels(self.template_channels)
                 .with_bound(self.template_bound)
+                .with_basis(self.template_basis)
+                .with_w_dim(self.w_dim)
                 .init(device)
         });
         let template_dim = template.as_ref().map_or(0, |t| t.channels);
@@ -293,7 +299,7 @@ impl Neiif {
         let template = self
             .template
             .as_ref()
-            .map(|t| t.forward(flat.clone(), wants.normals));
+            .map(|t| t.forward(flat.clone(), &w, wants.normals));
         let (encoded, mut encoding_derivative) = if wants.normals {
             let (encoded, deriv) = self.encoding.forward_with_derivative(flat);
             (encoded, Some(deriv.reshape([b, p, d])))

@@ -3,6 +3,13 @@
 //! (EG3D's xy, xz and yz planes), sampled at a point by projecting it onto each and summing
 //! the three, and handed to the NeIIF's first layer with the encoding.
 //!
+//! Optionally the planes are a latent's own (`basis > 0`): the shared planes plus `basis`
+//! more, each weighted by a coefficient that an affine layer makes of `w`, in the way a
+//! morphable model adds weighted shape components to a mean shape ([`PlaneBasis`]). The
+//! modulated first layer can only scale each shared channel per latent; the basis lets a
+//! latent move features in space (a longer nose, wider cheeks) at the cost of one small
+//! matrix product per query.
+//!
 //! Why: a Fourier-encoded MLP has no spatial locality. To put something at the height of
 //! the eyes it builds `sin(2^k pi y)` structure, and that shows as bands across the whole
 //! head (docs/RESULTS.md: at 4 and 5 octaves, axis-aligned, rotated or opened coarse to
@@ -26,6 +33,7 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 
 use crate::backend::to_f32_vec;
+use crate::equalized::{EqualizedLinear, EqualizedLinearConfig};
 use kernel::Taps;
 
 mod kernel;
@@ -41,6 +49,13 @@ pub struct TemplatePlanesConfig {
     /// Half the side of the square the planes cover (world units).
     #[config(default = 1.0)]
     pub bound: f64,
+    /// Planes a latent weights and adds to the shared ones ([`PlaneBasis`]); 0: the shared
+    /// planes alone.
+    #[config(default = 0)]
+    pub basis: usize,
+    /// Width of the latents `w` that weight the basis (with `basis > 0`).
+    #[config(default = 0)]
+    pub w_dim: usize,
 }
 
 /// The planes: `[3 resolution^2, channels]` (plane-major, then row `a`, column `b`), xy, xz,
@@ -48,10 +63,30 @@ pub struct TemplatePlanesConfig {
 #[derive(Module, Debug)]
 pub struct TemplatePlanes {
     pub planes: Param<Tensor<2>>,
+    /// Each latent's own addition to the planes, if any.
+    pub basis: Option<PlaneBasis>,
     pub resolution: usize,
     pub channels: usize,
     #[module(skip)]
     pub bound: f64,
+}
+
+/// `K` planes of the same layout as the shared ones, and the affine layer that gives a
+/// latent's coefficient of each: latent `w`'s planes are `planes + sum_k a_k(w) basis_k`.
+#[derive(Module, Debug)]
+pub struct PlaneBasis {
+    /// `[K, 3 resolution^2 channels]`, each row one set of planes, flattened.
+    pub planes: Param<Tensor<2>>,
+    /// `w: [batch, w_dim] -> a: [batch, K]`.
+    pub coefficients: EqualizedLinear,
+}
+
+/// The planes a batch's points read: `[latents 3 resolution^2, channels]`, the rows of each
+/// latent's planes after those of the latent before; `latents` is 1 when all share one set.
+#[derive(Clone, Debug)]
+pub struct LatentPlanes {
+    pub planes: Tensor<2>,
+    pub latents: usize,
 }
 
 /// The world axes each plane spans.
@@ -63,16 +98,27 @@ pub const TAPS: usize = 27;
 impl TemplatePlanesConfig {
     /// Planes of zeros: a fresh field is the encoding's alone, and the planes learn from the
     /// first step (the first layer's weights on them are not zero).
+    ///
+    /// The basis planes start at zero too, so a fresh field with a basis is the same for
+    /// every latent; the coefficients' layer starts as any equalized layer (unit-scale
+    /// coefficients for unit-scale latents), so the basis learns from the first step.
     pub fn init(&self, device: &Device) -> TemplatePlanes {
         assert!(
             self.resolution >= 2,
             "template planes need 2+ control points"
         );
+        assert!(
+            self.basis == 0 || self.w_dim > 0,
+            "a basis of template planes needs the latents' width"
+        );
+        let rows = 3 * self.resolution * self.resolution;
+        let basis = (self.basis > 0).then(|| PlaneBasis {
+            planes: Param::from_tensor(Tensor::zeros([self.basis, rows * self.channels], device)),
+            coefficients: EqualizedLinearConfig::new(self.w_dim, self.basis).init(device),
+        });
         TemplatePlanes {
-            planes: Param::from_tensor(Tensor::zeros(
-                [3 * self.resolution * self.resolution, self.channels],
-                device,
-            )),
+            planes: Param::from_tensor(Tensor::zeros([rows, self.channels], device)),
+            basis,
             resolution: self.resolution,
             channels: self.channels,
             bound: self.bound,
@@ -112,10 +158,17 @@ impl TemplatePlanes {
         }
     }
 
-    /// The taps of `points` (`[p, 3]`, flattened) with the features' weights and, with
-    /// `derivative`, the weights of their derivatives along x, y and z.
-    fn taps(&self, points: &[f32], derivative: bool) -> Taps {
+    /// The taps of `points` (`[p, 3]`, flattened, the points of `latents` latents one latent
+    /// after another) with the features' weights and, with `derivative`, the weights of their
+    /// derivatives along x, y and z. The taps of latent `l`'s points read the rows of its own
+    /// planes, `l 3 resolution^2` on ([`LatentPlanes`]).
+    fn taps(&self, points: &[f32], latents: usize, derivative: bool) -> Taps {
         let p = points.len() / 3;
+        assert!(
+            latents > 0 && p.is_multiple_of(latents),
+            "{p} points are not the same number for each of {latents} latents"
+        );
+        let per_latent = (p / latents).max(1);
         let n = self.resolution;
         let outputs = if derivative { 4 } else { 1 };
         let mut taps = Taps {
@@ -125,6 +178,7 @@ impl TemplatePlanes {
             weights: vec![0.0; TAPS * p * outputs],
         };
         for (q, point) in points.chunks_exact(3).enumerate() {
+            let first_row = q / per_latent * 3 * n * n;
             let axes: [_; 3] = std::array::from_fn(|j| {
                 let (s, ds) = self.grid_coordinate(f64::from(point[j]));
                 let (index, w, dw) = quadratic_taps(s, n);
@@ -135,7 +189,7 @@ impl TemplatePlanes {
                 for oa in 0..3 {
                     for ob in 0..3 {
                         let at = q * TAPS + plane * 9 + oa * 3 + ob;
-                        taps.index[at] = (plane * n * n + ia[oa] * n + ib[ob]) as u32;
+                        taps.index[at] = (first_row + plane * n * n + ia[oa] * n + ib[ob]) as u32;
                         let weights = &mut taps.weights[at * outputs..(at + 1) * outputs];
                         weights[0] = (wa[oa] * wb[ob]) as f32;
                         if derivative {
@@ -149,17 +203,54 @@ impl TemplatePlanes {
         taps
     }
 
-    /// The features at `points: [p, 3]`, `[p, channels]`, and with `derivative` their
-    /// derivatives along x, y and z (`[p, channels]` each).
+    /// The planes every latent reads alike.
+    pub fn shared(&self) -> LatentPlanes {
+        LatentPlanes {
+            planes: self.planes.val(),
+            latents: 1,
+        }
+    }
+
+    /// The planes of the latents `w: [batch, w_dim]`: each latent's own with a basis (the
+    /// shared planes plus the basis weighted by the latent's coefficients), else the shared
+    /// ones.
+    pub fn of_latents(&self, w: &Tensor<2>) -> LatentPlanes {
+        let Some(basis) = &self.basis else {
+            return self.shared();
+        };
+        let [batch, _] = w.dims();
+        let [rows, c] = self.planes.val().dims();
+        let a = basis.coefficients.forward(w.clone());
+        let own = a.matmul(basis.planes.val()) + self.planes.val().reshape([1, rows * c]);
+        LatentPlanes {
+            planes: own.reshape([batch * rows, c]),
+            latents: batch,
+        }
+    }
+
+    /// The features of `w`'s latents at `points: [p, 3]` (the points of each latent one
+    /// latent after another), `[p, channels]`, and with `derivative` their derivatives along
+    /// x, y and z (`[p, channels]` each).
     pub fn forward(
         &self,
+        points: Tensor<2>,
+        w: &Tensor<2>,
+        derivative: bool,
+    ) -> (Tensor<2>, Option<[Tensor<2>; 3]>) {
+        self.sample(&self.of_latents(w), points, derivative)
+    }
+
+    /// [`Self::forward`] on given planes.
+    pub fn sample(
+        &self,
+        planes: &LatentPlanes,
         points: Tensor<2>,
         derivative: bool,
     ) -> (Tensor<2>, Option<[Tensor<2>; 3]>) {
         let [p, _] = points.dims();
-        let taps = Arc::new(self.taps(&to_f32_vec(points), derivative));
+        let taps = Arc::new(self.taps(&to_f32_vec(points), planes.latents, derivative));
         let c = self.channels;
-        let out = kernel::sample(self.planes.val(), taps);
+        let out = kernel::sample(planes.planes.clone(), taps);
         let output = |k: usize| out.clone().narrow(1, k, 1).reshape([p, c]);
         let derivatives = derivative.then(|| [output(1), output(2), output(3)]);
         (output(0), derivatives)

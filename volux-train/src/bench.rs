@@ -19,11 +19,13 @@ use std::time::Instant;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 use volux_model::backend::{BackendError, BackendKind};
+use volux_model::field::FieldWants;
 use volux_model::flops::{self, BACKWARD_FACTOR};
 use volux_model::presets::DiscriminatorRole;
 use volux_model::profile::{AlreadyRunning, Phase, PhaseTime, Profiler};
 
 use crate::config::TrainConfig;
+use crate::losses::DENSITY_REGULARISER_POINTS;
 use crate::metrics::{median, peak_rss_mib};
 use crate::schedule::{ActiveTerms, Stage};
 use crate::step::{generator_wants, side_by_side_on};
@@ -289,7 +291,16 @@ fn phase_flops(
 ) -> Vec<(Phase, f64, Counting)> {
     use Counting::{Estimate, Exact};
     let batch = config.train.batch;
-    let g = flops::generator(&config.generator(), batch, generator_wants(active));
+    let mut g = flops::generator(&config.generator(), batch, generator_wants(active));
+    if active.density {
+        // The density regulariser's query of its point pairs, timed with the field.
+        g.field += flops::field(
+            &config.generator().neiif,
+            batch,
+            2 * DENSITY_REGULARISER_POINTS,
+            FieldWants::DENSITY,
+        );
+    }
     let disc = |role| {
         let c = config.model.discriminator(role).expect("validated config");
         (flops::discriminator(&c, batch), c)
@@ -541,6 +552,47 @@ mod tests {
         assert_eq!(r1_extra(&steps, 0), None);
         assert_eq!(r1_extra(&steps[..1], 16), None);
         assert_eq!(r1_extra(&[], 16), None);
+    }
+
+    #[test]
+    fn the_density_regulariser_is_counted_with_the_field_and_its_backward() {
+        let path =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/quickstart.toml");
+        let config = TrainConfig::load(&path).unwrap();
+        let without = ActiveTerms {
+            albedo: true,
+            geometry: true,
+            path: true,
+            ..ActiveTerms::default()
+        };
+        let with = ActiveTerms {
+            density: true,
+            ..without
+        };
+        let of = |active| {
+            let rows = phase_flops(&config, active, 10, 10);
+            move |phase: Phase| {
+                rows.iter()
+                    .find(|(p, _, _)| *p == phase)
+                    .map(|&(_, f, _)| f)
+                    .unwrap()
+            }
+        };
+        let (a, b) = (of(without), of(with));
+        let query = flops::field(
+            &config.generator().neiif,
+            config.train.batch,
+            2 * DENSITY_REGULARISER_POINTS,
+            FieldWants::DENSITY,
+        );
+        assert!(query > 0.0);
+        let close = |x: f64, y: f64| (x - y).abs() <= 1e-9 * y.abs();
+        assert!(close(b(Phase::Field) - a(Phase::Field), query));
+        assert!(close(
+            b(Phase::GeneratorBackward) - a(Phase::GeneratorBackward),
+            BACKWARD_FACTOR * query
+        ));
+        assert_eq!(b(Phase::Upsampler), a(Phase::Upsampler));
     }
 
     #[test]

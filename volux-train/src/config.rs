@@ -61,6 +61,9 @@ pub const MAX_TEMPLATE_RESOLUTION: usize = 256;
 /// The most `[model] template_channels` (EG3D's planes have 32).
 pub const MAX_TEMPLATE_CHANNELS: usize = 64;
 
+/// The most `[model] template_basis` sets of planes (each as large as the shared planes).
+pub const MAX_TEMPLATE_BASIS: usize = 64;
+
 /// The largest `[model] template_bound`: every ray sample of the default camera lies within
 /// about 0.8 of the origin (docs/model.md, "Template planes"), so much wider planes only
 /// spread their control points where no ray goes.
@@ -143,6 +146,11 @@ pub struct ModelConfig {
     /// the control points span `[-template_bound, template_bound]`.
     #[serde(default)]
     pub template_bound: Option<f64>,
+    /// Sets of planes each latent weights and adds to that tri-plane, so that each latent
+    /// has planes of its own (absent or 0: one tri-plane for every latent). Needs
+    /// `template_resolution`.
+    #[serde(default)]
+    pub template_basis: Option<usize>,
 }
 
 /// The `[model] encoding` key.
@@ -269,6 +277,19 @@ impl ModelConfig {
                 ));
             }
             g.neiif.template_bound = b;
+        }
+        if let Some(k) = self.template_basis {
+            if k > MAX_TEMPLATE_BASIS {
+                return Err(format!(
+                    "model.template_basis = {k} must be in 0..={MAX_TEMPLATE_BASIS}"
+                ));
+            }
+            if k > 0 && g.neiif.template_resolution == 0 {
+                return Err(format!(
+                    "model.template_basis = {k} needs template planes: give model.template_resolution"
+                ));
+            }
+            g.neiif.template_basis = k;
         }
         if let Some(n) = self.mapping_layers {
             if !(1..=MAX_MAPPING_LAYERS).contains(&n) {

@@ -13,6 +13,11 @@
 //! level is the median, over the columns the head stops (transmittance below 1/2 at the far
 //! end), of the density where it crosses 1/2, i.e. where the expected image puts the surface.
 //! Grid points on the cube's faces count as outside, so the mesh is closed.
+//!
+//! A trained field can hold specks of density beside the head (floaters); marching cubes makes
+//! each a small closed piece. Pieces with fewer than a given fraction of the largest piece's
+//! vertices are left out ([`drop_small_pieces`]; `volux export mesh --min-piece`, 0 keeps
+//! them).
 
 use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -41,6 +46,10 @@ pub enum MeshError {
     Resolution(usize),
     #[error("--threshold {0}: the iso-level must be a positive finite density")]
     Threshold(f64),
+    #[error(
+        "--min-piece {0}: give a fraction of the largest piece's vertices from 0 (keep every piece) to 1"
+    )]
+    MinPiece(f64),
     #[error(
         "the density is empty: no frontal ray is stopped by it (max density {max}), so there is no surface to choose a level for; give --threshold"
     )]
@@ -243,6 +252,82 @@ pub fn marching_cubes(grid: &DensityGrid, level: f32) -> Mesh {
     }
 }
 
+/// The connected piece of each vertex (vertices joined by the triangles' edges), as the index
+/// of one vertex of its piece: union-find with path halving.
+pub fn pieces(mesh: &Mesh) -> Vec<u32> {
+    fn root(parent: &mut [u32], mut v: u32) -> u32 {
+        while parent[v as usize] != v {
+            parent[v as usize] = parent[parent[v as usize] as usize];
+            v = parent[v as usize];
+        }
+        v
+    }
+    let mut parent: Vec<u32> = (0..mesh.positions.len() as u32).collect();
+    for t in &mesh.triangles {
+        for k in 1..3 {
+            let (a, b) = (root(&mut parent, t[0]), root(&mut parent, t[k]));
+            parent[a as usize] = b;
+        }
+    }
+    (0..parent.len() as u32)
+        .map(|v| root(&mut parent, v))
+        .collect()
+}
+
+/// What [`drop_small_pieces`] kept and left out.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Pieces {
+    /// Connected pieces kept and dropped.
+    pub kept: usize,
+    pub dropped: usize,
+    /// Vertices of the dropped pieces.
+    pub dropped_vertices: usize,
+}
+
+/// `mesh` without its connected pieces of fewer than `min_piece` times the largest piece's
+/// vertices (the specks of density a GAN leaves beside a head); `0` keeps every piece, `1`
+/// the largest (and any as large). Vertices and triangles keep their order; normals and
+/// colours, where present, go with their vertices.
+pub fn drop_small_pieces(mesh: &Mesh, min_piece: f64) -> Result<(Mesh, Pieces), MeshError> {
+    if !(0.0..=1.0).contains(&min_piece) {
+        return Err(MeshError::MinPiece(min_piece));
+    }
+    let piece = pieces(mesh);
+    let mut sizes = std::collections::HashMap::<u32, usize>::new();
+    for &r in &piece {
+        *sizes.entry(r).or_default() += 1;
+    }
+    let largest = sizes.values().copied().max().unwrap_or(0);
+    let keep = |r: &u32| sizes[r] as f64 >= min_piece * largest as f64;
+    let kept = sizes.keys().filter(|r| keep(r)).count();
+    let mut index = vec![u32::MAX; piece.len()];
+    let mut out = Mesh::default();
+    for (v, r) in piece.iter().enumerate() {
+        if keep(r) {
+            index[v] = out.positions.len() as u32;
+            out.positions.push(mesh.positions[v]);
+            if let Some(&n) = mesh.normals.get(v) {
+                out.normals.push(n);
+            }
+            if let Some(&c) = mesh.colors.get(v) {
+                out.colors.push(c);
+            }
+        }
+    }
+    out.triangles = mesh
+        .triangles
+        .iter()
+        .filter(|t| index[t[0] as usize] != u32::MAX)
+        .map(|t| t.map(|v| index[v as usize]))
+        .collect();
+    let pieces = Pieces {
+        kept,
+        dropped: sizes.len() - kept,
+        dropped_vertices: mesh.positions.len() - out.positions.len(),
+    };
+    Ok((out, pieces))
+}
+
 /// Options of [`generator_mesh`].
 #[derive(Clone, Copy, Debug)]
 pub struct MeshOptions {
@@ -250,6 +335,15 @@ pub struct MeshOptions {
     pub resolution: usize,
     /// The iso-level; `None`: the frontal level (module docs).
     pub threshold: Option<f64>,
+    /// Connected pieces with fewer than this fraction of the largest piece's vertices are
+    /// left out ([`drop_small_pieces`]); `0` keeps every piece.
+    pub min_piece: f64,
+}
+
+impl MeshOptions {
+    /// The default piece filter of `volux export mesh`: a twentieth of the head. The specks of
+    /// the shipped model are tens of vertices beside a head of tens of thousands.
+    pub const MIN_PIECE: f64 = 0.05;
 }
 
 /// What [`generator_mesh`] made.
@@ -261,10 +355,13 @@ pub struct GeneratorMesh {
     /// The density's range on the grid.
     pub min: f32,
     pub max: f32,
+    /// The connected pieces kept and left out.
+    pub pieces: Pieces,
 }
 
-/// The mesh of seed `seed`'s head: density on the grid, marching cubes, then albedo and the
-/// exact normal at every vertex.
+/// The mesh of seed `seed`'s head: density on the grid, marching cubes, the pieces smaller
+/// than `options.min_piece` of the largest left out, then albedo and the exact normal at every
+/// vertex.
 pub fn generator_mesh(
     model: &TrainedGenerator,
     seed: u64,
@@ -277,6 +374,9 @@ pub fn generator_mesh(
         && !(t.is_finite() && t > 0.0)
     {
         return Err(MeshError::Threshold(t));
+    }
+    if !(0.0..=1.0).contains(&options.min_piece) {
+        return Err(MeshError::MinPiece(options.min_piece));
     }
     let (g, device) = (&model.g, &model.device);
     let z_dim = model.config.generator().mapping.z_dim;
@@ -295,10 +395,12 @@ pub fn generator_mesh(
         Some(t) => t as f32,
         None => grid.frontal_level().ok_or(MeshError::Empty { max })?,
     };
-    let mut mesh = marching_cubes(&grid, level);
+    let mesh = marching_cubes(&grid, level);
     if mesh.triangles.is_empty() {
         return Err(MeshError::NoSurface { level, min, max });
     }
+    // Before the vertices' albedo and normals: a dropped piece needs neither.
+    let (mut mesh, pieces) = drop_small_pieces(&mesh, options.min_piece)?;
     let (mut normals, mut colors) = (Vec::new(), Vec::new());
     for points in mesh.positions.chunks(CHUNK) {
         let out = query(points, FieldWants::ALL);
@@ -315,6 +417,7 @@ pub fn generator_mesh(
         level,
         min,
         max,
+        pieces,
     })
 }
 

@@ -109,8 +109,13 @@ fn check_windowed_gradient_of(config: NeiifConfig, window: Option<f64>, h: f64, 
 /// all take part) against central differences of that loss, on fixed weights.
 #[test]
 fn a_loss_on_the_density_gradient_has_the_central_difference_gradient_in_w() {
+    check_w_gradient(small_config(3, 10.0));
+}
+
+/// [`a_loss_on_the_density_gradient_has_the_central_difference_gradient_in_w`] on `config`.
+fn check_w_gradient(config: NeiifConfig) {
     let device = Device::flex().autodiff();
-    let field = small_with_prior(3, 10.0, &device).map(&mut Reseed::new(41, DType::F32));
+    let field = config.init(&device).map(&mut Reseed::new(41, DType::F32));
     let n = 16;
     let pts = points(n, 9, &device);
     let (r, w0) = cotangent_and_latent(n, &device);
@@ -187,6 +192,78 @@ fn template_planes_give_the_central_difference_density_gradient_and_plane_gradie
             "d loss / d plane[{k}]: {g} vs central difference {fd} (scale {scale})"
         );
     }
+}
+
+/// Template planes of each latent's own (a basis): the density gradient matches central
+/// differences, a loss on it has the central-difference gradient in `w` (which now also
+/// reaches the planes through the basis' coefficients), and a batch of two latents is each
+/// latent queried alone, in every output (each latent's points read its own planes).
+#[test]
+fn a_basis_of_template_planes_keeps_the_gradients_and_each_latent_reads_its_own_planes() {
+    let config = small_config(3, 10.0)
+        .with_template_resolution(8)
+        .with_template_channels(4)
+        .with_template_basis(3);
+    check_gradient_of(config.clone(), 1e-3, 5e-3);
+    check_w_gradient(config.clone());
+
+    let device = Device::flex();
+    let field = config.init(&device).map(&mut Reseed::new(43, DType::F32));
+    let n = 12;
+    let (a, b) = (points(n, 3, &device), points(n, 4, &device));
+    let w = normals(&mut SplitMix64::new(44), 2 * 16);
+    let (wa, wb) = (
+        tensor_of(&w[..16], [1, 16], &device),
+        tensor_of(&w[16..], [1, 16], &device),
+    );
+    let both = field.forward(
+        Tensor::cat(vec![a.clone(), b.clone()], 0),
+        Tensor::cat(vec![wa.clone(), wb.clone()], 0),
+        FieldWants::ALL,
+    );
+    let (alone_a, alone_b) = (
+        field.forward(a, wa, FieldWants::ALL),
+        field.forward(b, wb, FieldWants::ALL),
+    );
+    let close = |got: Vec<f32>, want: Vec<f32>, what: &str| {
+        assert_eq!(got.len(), want.len());
+        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+            assert!(
+                (g - w).abs() <= 1e-4 * (1.0 + w.abs()),
+                "{what} {i}: {g} vs {w}"
+            );
+        }
+    };
+    let halves = |t: Tensor<2>| {
+        let v = to_f32_vec(t);
+        let (x, y) = v.split_at(v.len() / 2);
+        (x.to_vec(), y.to_vec())
+    };
+    let (sa, sb) = halves(both.sigma);
+    close(sa, to_f32_vec(alone_a.sigma), "sigma of latent 0");
+    close(sb, to_f32_vec(alone_b.sigma), "sigma of latent 1");
+    let (ga, gb) = halves(both.grad_sigma.unwrap().reshape([2, 3 * n]));
+    close(
+        ga,
+        to_f32_vec(alone_a.grad_sigma.unwrap()),
+        "grad sigma of latent 0",
+    );
+    close(
+        gb,
+        to_f32_vec(alone_b.grad_sigma.unwrap()),
+        "grad sigma of latent 1",
+    );
+    let (aa, ab) = halves(both.albedo.unwrap().reshape([2, 3 * n]));
+    close(
+        aa,
+        to_f32_vec(alone_a.albedo.unwrap()),
+        "albedo of latent 0",
+    );
+    close(
+        ab,
+        to_f32_vec(alone_b.albedo.unwrap()),
+        "albedo of latent 1",
+    );
 }
 
 #[test]

@@ -103,7 +103,7 @@ fn features_match_the_f64_definition_inside_on_and_outside_the_square() {
             .map(|&v| f64::from(v))
             .collect();
         let points = test_points();
-        let (got, _) = t.forward(tensor(&points, &device), false);
+        let (got, _) = t.sample(&t.shared(), tensor(&points, &device), false);
         let got = to_f32_vec(got);
         for (q, x) in points.iter().enumerate() {
             let want = reference(&values, n, c, bound, *x);
@@ -134,7 +134,7 @@ fn derivatives_match_central_differences_of_the_f64_definition() {
     points.truncate(40);
     let cell = 2.0 * bound / (n - 1) as f64;
     points.push([-bound + 2.5 * cell, -bound + 3.0 * cell, 0.1]);
-    let (_, derivatives) = t.forward(tensor(&points, &device), true);
+    let (_, derivatives) = t.sample(&t.shared(), tensor(&points, &device), true);
     let derivatives = derivatives.unwrap().map(to_f32_vec);
     let h = 1e-5;
     for (q, x) in points.iter().enumerate() {
@@ -157,7 +157,7 @@ fn derivatives_match_central_differences_of_the_f64_definition() {
         }
     }
     // Outside the square the features are constant in the clamped coordinate.
-    let (_, d) = t.forward(tensor(&[[1.7, 0.1, 0.2]], &device), true);
+    let (_, d) = t.sample(&t.shared(), tensor(&[[1.7, 0.1, 0.2]], &device), true);
     assert!(to_f32_vec(d.unwrap()[0].clone()).iter().all(|&v| v == 0.0));
 }
 
@@ -172,7 +172,7 @@ fn the_planes_gradient_is_each_taps_weight() {
     let r: Vec<f64> = (0..p * c).map(|_| rng.next_f64() - 0.5).collect();
     let r32: Vec<f32> = r.iter().map(|&v| v as f32).collect();
     let r_t = Tensor::<2>::from_data(TensorData::new(r32, [p, c]), &device);
-    let (features, _) = t.forward(tensor(&points, &device), false);
+    let (features, _) = t.sample(&t.shared(), tensor(&points, &device), false);
     let grads = (features * r_t).sum().backward();
     let got = to_f32_vec(t.planes.grad(&grads).unwrap());
     // d/dP[row, ch] of sum_q r[q, ch] f(x_q)[ch]: the f64 definition's weight of that row
@@ -199,7 +199,7 @@ fn fold_is_the_cotangent_through_the_derivatives() {
     let t = planes(8, 3, 1.0, &device);
     let points = test_points();
     let p = points.len();
-    let (_, d) = t.forward(tensor(&points, &device), true);
+    let (_, d) = t.sample(&t.shared(), tensor(&points, &device), true);
     let d = d.unwrap();
     let u = Tensor::<3>::from_data(
         TensorData::new(
@@ -228,7 +228,7 @@ fn fresh_planes_are_zero() {
 /// The taps of [`test_points`] for planes `t`, and the planes as a tensor on `device`.
 fn taps_of(t: &TemplatePlanes, derivative: bool) -> Arc<Taps> {
     let v: Vec<f32> = test_points().iter().flatten().map(|&x| x as f32).collect();
-    Arc::new(t.taps(&v, derivative))
+    Arc::new(t.taps(&v, 1, derivative))
 }
 
 #[test]
@@ -284,7 +284,7 @@ fn the_kernels_gradient_does_not_depend_on_the_thread_count() {
     let v: Vec<f32> = (0..3 * 5000)
         .map(|_| (rng.next_f64() * 1.8 - 0.9) as f32)
         .collect();
-    let taps = Arc::new(t.taps(&v, true));
+    let taps = Arc::new(t.taps(&v, 1, true));
     let gradient = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -311,7 +311,7 @@ fn extreme_points_clamp_and_a_nan_point_stays_its_own() {
         [f64::NAN, 0.1, 0.2],
         [0.3, 0.2, 0.1],
     ];
-    let (values, derivatives) = t.forward(tensor(&points, &device), true);
+    let (values, derivatives) = t.sample(&t.shared(), tensor(&points, &device), true);
     let values = to_f32_vec(values);
     let derivatives = derivatives.unwrap().map(to_f32_vec);
     let values64: Vec<f64> = to_f32_vec(t.planes.val())
@@ -339,4 +339,240 @@ fn extreme_points_clamp_and_a_nan_point_stays_its_own() {
     assert!(derivatives[1][3..6].iter().all(|&v| v == 0.0));
     // A NaN point gives NaN features, and only it.
     assert!(values[6..9].iter().all(|v| v.is_nan()));
+}
+
+/// Planes with a basis of `k` for latents of width `w_dim`, every parameter N(0, 1).
+fn planes_with_basis(
+    n: usize,
+    c: usize,
+    k: usize,
+    w_dim: usize,
+    device: &Device,
+) -> TemplatePlanes {
+    TemplatePlanesConfig::new(n)
+        .with_channels(c)
+        .with_basis(k)
+        .with_w_dim(w_dim)
+        .init(device)
+        .map(&mut Reseed::new(7, DType::F32))
+}
+
+/// The parameters of planes with a basis in f64: the shared planes, the basis, and the
+/// coefficients' effective weight `[K, w_dim]` and bias.
+#[derive(Clone)]
+struct BasisF64 {
+    shared: Vec<f64>,
+    basis: Vec<f64>,
+    weight: Vec<f64>,
+    bias: Vec<f64>,
+}
+
+fn f64s<const D: usize>(t: Tensor<D>) -> Vec<f64> {
+    to_f32_vec(t).into_iter().map(f64::from).collect()
+}
+
+impl BasisF64 {
+    fn of(t: &TemplatePlanes) -> Self {
+        let basis = t.basis.as_ref().unwrap();
+        Self {
+            shared: f64s(t.planes.val()),
+            basis: f64s(basis.planes.val()),
+            weight: f64s(basis.coefficients.effective_weight()),
+            bias: f64s(basis.coefficients.effective_bias().unwrap()),
+        }
+    }
+
+    /// Latent `w`'s planes from the definition: `shared + sum_k (W w + b)_k basis_k`.
+    fn planes(&self, w: &[f64]) -> Vec<f64> {
+        let len = self.shared.len();
+        let mut out = self.shared.clone();
+        for (k, bias) in self.bias.iter().enumerate() {
+            let row = &self.weight[k * w.len()..(k + 1) * w.len()];
+            let a = bias + row.iter().zip(w).map(|(m, x)| m * x).sum::<f64>();
+            for (o, b) in out.iter_mut().zip(&self.basis[k * len..(k + 1) * len]) {
+                *o += a * b;
+            }
+        }
+        out
+    }
+}
+
+/// `values` as an f32 tensor of `shape`.
+fn tensor_of(values: &[f64], shape: [usize; 2], device: &Device) -> Tensor<2> {
+    let v: Vec<f32> = values.iter().map(|&x| x as f32).collect();
+    Tensor::from_data(TensorData::new(v, shape), device)
+}
+
+#[test]
+fn each_latents_planes_are_the_shared_planes_plus_its_weighted_basis() {
+    let device = Device::flex();
+    let (n, c, k, w_dim) = (6, 3, 4, 5);
+    let t = planes_with_basis(n, c, k, w_dim, &device);
+    let params = BasisF64::of(&t);
+    let w = crate::test_support::normals(&mut SplitMix64::new(21), 2 * w_dim);
+    // Two latents, half of the points each.
+    let points = test_points();
+    let half = points.len() / 2;
+    let (features, derivatives) = t.forward(
+        tensor(&points, &device),
+        &tensor_of(&w, [2, w_dim], &device),
+        true,
+    );
+    let (features, derivatives) = (to_f32_vec(features), derivatives.unwrap().map(to_f32_vec));
+    let h = 1e-5;
+    for latent in 0..2 {
+        let own = params.planes(&w[latent * w_dim..(latent + 1) * w_dim]);
+        for (q, x) in points.iter().enumerate().skip(latent * half).take(half) {
+            let want = reference(&own, n, c, 1.0, *x);
+            for ch in 0..c {
+                let got = f64::from(features[q * c + ch]);
+                assert!(
+                    (got - want[ch]).abs() < 1e-4 * (1.0 + want[ch].abs()),
+                    "latent {latent} point {x:?} channel {ch}: {got} vs {}",
+                    want[ch]
+                );
+            }
+            if x.iter().any(|v| v.abs() > 0.9) {
+                continue;
+            }
+            for j in 0..3 {
+                let (mut a, mut b) = (*x, *x);
+                a[j] += h;
+                b[j] -= h;
+                let (fa, fb) = (reference(&own, n, c, 1.0, a), reference(&own, n, c, 1.0, b));
+                for ch in 0..c {
+                    let fd = (fa[ch] - fb[ch]) / (2.0 * h);
+                    let got = f64::from(derivatives[j][q * c + ch]);
+                    assert!(
+                        (got - fd).abs() < 1e-4 * (1.0 + fd.abs()),
+                        "latent {latent} point {x:?} axis {j} channel {ch}: {got} vs {fd}"
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// The gradient of `sum r f` (features `f` of two latents) in the shared planes, the basis,
+/// and the coefficients' weight and bias, against central differences of the f64
+/// definition. The features are linear in each of these, so the differences are exact up
+/// to rounding.
+#[test]
+fn the_basis_and_its_coefficients_get_the_central_difference_gradient() {
+    let device = Device::flex().autodiff();
+    let (n, c, k, w_dim) = (5, 2, 3, 4);
+    let t = planes_with_basis(n, c, k, w_dim, &device);
+    let params = BasisF64::of(&t);
+    let w = crate::test_support::normals(&mut SplitMix64::new(22), 2 * w_dim);
+    let points = test_points();
+    let (p, half) = (points.len(), points.len() / 2);
+    let r = crate::test_support::normals(&mut SplitMix64::new(23), p * c);
+    let (features, _) = t.forward(
+        tensor(&points, &device),
+        &tensor_of(&w, [2, w_dim], &device),
+        false,
+    );
+    let grads = (features * tensor_of(&r, [p, c], &device)).sum().backward();
+    let basis = t.basis.as_ref().unwrap();
+    let gains = (basis.coefficients.weight_gain, basis.coefficients.bias_gain);
+    let loss = |params: &BasisF64| -> f64 {
+        (0..2)
+            .map(|latent| {
+                let own = params.planes(&w[latent * w_dim..(latent + 1) * w_dim]);
+                (latent * half..(latent + 1) * half)
+                    .map(|q| {
+                        let f = reference(&own, n, c, 1.0, points[q]);
+                        (0..c).map(|ch| r[q * c + ch] * f[ch]).sum::<f64>()
+                    })
+                    .sum::<f64>()
+            })
+            .sum()
+    };
+    type Pick = fn(&mut BasisF64) -> &mut Vec<f64>;
+    let cases: [(&str, Vec<f32>, Pick, f64); 4] = [
+        (
+            "shared planes",
+            to_f32_vec(t.planes.grad(&grads).unwrap()),
+            |b| &mut b.shared,
+            1.0,
+        ),
+        (
+            "basis",
+            to_f32_vec(basis.planes.grad(&grads).unwrap()),
+            |b| &mut b.basis,
+            1.0,
+        ),
+        (
+            "coefficients' weight",
+            to_f32_vec(basis.coefficients.weight.grad(&grads).unwrap()),
+            |b| &mut b.weight,
+            gains.0,
+        ),
+        (
+            "coefficients' bias",
+            to_f32_vec(
+                basis
+                    .coefficients
+                    .bias
+                    .as_ref()
+                    .unwrap()
+                    .grad(&grads)
+                    .unwrap(),
+            ),
+            |b| &mut b.bias,
+            gains.1,
+        ),
+    ];
+    let h = 1e-3;
+    for (what, got, pick, gain) in cases {
+        // The entries the loss leans on most, and a few spread over the rest.
+        let mut order: Vec<usize> = (0..got.len()).collect();
+        order.sort_by(|&a, &b| got[b].abs().total_cmp(&got[a].abs()));
+        let scale = f64::from(got[order[0]].abs());
+        assert!(scale > 0.0, "{what}: the loss does not reach it");
+        let step = (got.len() / 5).max(1);
+        let entries = order.iter().take(6).chain(order.iter().step_by(step));
+        for &e in entries {
+            let at = |delta: f64| {
+                let mut moved = params.clone();
+                pick(&mut moved)[e] += delta;
+                loss(&moved)
+            };
+            // A stored parameter moves its effective value by `gain` times as much.
+            let fd = gain * (at(h) - at(-h)) / (2.0 * h);
+            let g = f64::from(got[e]);
+            assert!(
+                (g - fd).abs() < 1e-4 * scale,
+                "{what}[{e}]: {g} vs central difference {fd} (scale {scale})"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_fresh_basis_is_zero_so_every_latent_starts_on_the_shared_planes() {
+    let device = Device::flex();
+    let mut t = TemplatePlanesConfig::new(4)
+        .with_basis(3)
+        .with_w_dim(6)
+        .init(&device);
+    let basis = t.basis.as_ref().unwrap();
+    assert_eq!(basis.planes.val().dims(), [3, 48 * 8]);
+    assert!(to_f32_vec(basis.planes.val()).iter().all(|&v| v == 0.0));
+    let shared = crate::test_support::normals(&mut SplitMix64::new(5), 48 * 8);
+    t.planes = Param::from_tensor(tensor_of(&shared, [48, 8], &device));
+    let w = crate::test_support::normals(&mut SplitMix64::new(6), 3 * 6);
+    let own = t.of_latents(&tensor_of(&w, [3, 6], &device));
+    assert_eq!(own.latents, 3);
+    assert_eq!(own.planes.dims(), [3 * 48, 8]);
+    let own = to_f32_vec(own.planes);
+    let shared = to_f32_vec(t.planes.val());
+    for latent in 0..3 {
+        assert_eq!(own[latent * 48 * 8..(latent + 1) * 48 * 8], shared[..]);
+    }
+    // Without a basis every latent reads the one set.
+    let plain = TemplatePlanesConfig::new(4).init(&device);
+    assert!(plain.basis.is_none());
+    let one = plain.of_latents(&tensor_of(&w, [3, 6], &device));
+    assert_eq!((one.latents, one.planes.dims()), (1, [48, 8]));
 }

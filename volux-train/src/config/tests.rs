@@ -20,6 +20,11 @@ fn load(text: &str) -> Result<TrainConfig, String> {
     TrainConfig::load(&path).map_err(|e| volux_envmap::error::chain(&e))
 }
 
+/// A fresh field of `config`'s generator.
+fn field_of(config: &TrainConfig) -> volux_model::neiif::Neiif {
+    config.generator().neiif.init(&burn::tensor::Device::flex())
+}
+
 #[test]
 fn a_small_config_loads_with_the_paper_defaults() {
     let c = load(TINY).unwrap();
@@ -146,6 +151,27 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
         planes.shapes(),
         "a resume must match the bound"
     );
+    // A basis of planes: none unless asked; its sets and coefficients reach the field, and a
+    // resume must match it.
+    assert_eq!(planes.generator().neiif.template_basis, 0);
+    assert!(field_of(&planes).template.unwrap().basis.is_none());
+    let text = TINY.replace(
+        "\"small\"",
+        "\"small\"\ntemplate_resolution = 16\ntemplate_channels = 4\ntemplate_basis = 5",
+    );
+    let based = load(&text).unwrap();
+    assert_eq!(based.generator().neiif.template_basis, 5);
+    let basis = field_of(&based).template.unwrap().basis.unwrap();
+    assert_eq!(basis.planes.val().dims(), [5, 3 * 16 * 16 * 4]);
+    assert_eq!(
+        basis.coefficients.weight.val().dims(),
+        [5, based.generator().mapping.w_dim]
+    );
+    assert_ne!(
+        based.shapes(),
+        planes.shapes(),
+        "a resume must match the basis"
+    );
     // The encoding: the paper's unless asked; part of what a resume must match.
     assert!(!load(TINY).unwrap().generator().neiif.rotated_encoding);
     for (key, rotated) in [("axis-aligned", false), ("rotated", true)] {
@@ -262,6 +288,17 @@ fn bad_configs_name_the_file_and_the_key() {
         (
             TINY.replace("\"small\"", "\"small\"\ntemplate_bound = 5.0"),
             "model.template_bound = 5.0",
+        ),
+        (
+            TINY.replace(
+                "\"small\"",
+                "\"small\"\ntemplate_resolution = 8\ntemplate_basis = 65",
+            ),
+            "model.template_basis = 65",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\ntemplate_basis = 2"),
+            "model.template_basis = 2 needs template planes",
         ),
         (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
         (

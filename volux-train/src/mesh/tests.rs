@@ -16,29 +16,6 @@ fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     ]
 }
 
-/// The connected piece of each vertex (vertices joined by the triangles' edges), as the index
-/// of one vertex of its piece: union-find with path halving.
-fn pieces(mesh: &Mesh) -> Vec<usize> {
-    let mut parent: Vec<usize> = (0..mesh.positions.len()).collect();
-    fn root(parent: &mut [usize], mut v: usize) -> usize {
-        while parent[v] != v {
-            parent[v] = parent[parent[v]];
-            v = parent[v];
-        }
-        v
-    }
-    for t in &mesh.triangles {
-        for k in 1..3 {
-            let (a, b) = (
-                root(&mut parent, t[0] as usize),
-                root(&mut parent, t[k] as usize),
-            );
-            parent[a] = b;
-        }
-    }
-    (0..parent.len()).map(|v| root(&mut parent, v)).collect()
-}
-
 /// Area-weighted face normals summed at each vertex, normalised: the mesh's own normals.
 fn geometric_normals(mesh: &Mesh) -> Vec<[f64; 3]> {
     let mut sum = vec![[0.0f64; 3]; mesh.positions.len()];
@@ -206,16 +183,15 @@ fn the_shipped_heads_field_normals_agree_with_their_meshes() {
         .unwrap()
         .load(volux_model::backend::BackendKind::Cpu)
         .unwrap();
-    let out = generator_mesh(
-        &model,
-        0,
-        MeshOptions {
-            resolution: 48,
-            threshold: None,
-        },
-    )
-    .unwrap();
+    let options = |min_piece| MeshOptions {
+        resolution: 48,
+        threshold: None,
+        min_piece,
+    };
+    let out = generator_mesh(&model, 0, options(0.0)).unwrap();
     let mesh = &out.mesh;
+    assert_eq!(out.pieces.dropped, 0);
+    assert_eq!(out.pieces.dropped_vertices, 0);
     assert!(mesh.triangles.len() > 500, "{}", mesh.triangles.len());
     assert_eq!(mesh.normals.len(), mesh.positions.len());
     assert_eq!(mesh.colors.len(), mesh.positions.len());
@@ -236,7 +212,7 @@ fn the_shipped_heads_field_normals_agree_with_their_meshes() {
     // none near the cube's sides, front, back or top (the neck may leave through the bottom,
     // where the faces close it). The other pieces are the specks of density the shipped
     // model's template planes leave beside the head (docs/RESULTS.md, "Latest"): few, and
-    // the mesh keeps them.
+    // with `min_piece` 0 the mesh keeps them.
     let piece = pieces(mesh);
     let mut sizes = std::collections::HashMap::new();
     for &r in &piece {
@@ -256,4 +232,159 @@ fn the_shipped_heads_field_normals_agree_with_their_meshes() {
             .all(|(p, _)| p[0].abs() < 0.45 && p[2].abs() < 0.45 && p[1] < 0.45)
     );
     assert!(out.level > 0.0 && out.level < out.max);
+    // The export's default filter leaves the head alone: the pieces are dropped before the
+    // vertices' albedo and normals are queried, and what remains is the same as dropping them
+    // from the whole mesh.
+    let filtered = generator_mesh(&model, 0, options(MeshOptions::MIN_PIECE)).unwrap();
+    let (expected, counts) = drop_small_pieces(mesh, MeshOptions::MIN_PIECE).unwrap();
+    assert_eq!(filtered.mesh, expected);
+    assert_eq!(filtered.pieces, counts);
+    assert_eq!(counts.kept, 1, "{counts:?}");
+    assert_eq!(counts.dropped, sizes.len() - 1);
+    assert!(
+        filtered
+            .mesh
+            .positions
+            .iter()
+            .all(|p| p[0].abs() < 0.45 && p[2].abs() < 0.45 && p[1] < 0.45)
+    );
+}
+
+/// Two balls far apart, of radius 0.25 and 0.06, as densities on a grid of 48.
+fn two_balls() -> Mesh {
+    let big = ball(0.25, 100.0, 0.01);
+    let small = ball(0.06, 100.0, 0.01);
+    let grid = DensityGrid::sample(48, |points| {
+        let moved: Vec<[f32; 3]> = points
+            .iter()
+            .map(|p| [p[0] - 0.3, p[1] - 0.3, p[2] - 0.3])
+            .collect();
+        let (a, b) = (big(points), small(&moved));
+        a.iter().zip(&b).map(|(a, b)| a + b).collect()
+    });
+    let mut mesh = marching_cubes(&grid, 50.0);
+    mesh.normals = mesh.positions.iter().map(|p| [p[0], p[1], p[2]]).collect();
+    mesh.colors = (0..mesh.positions.len())
+        .map(|i| [i as u8, (i >> 8) as u8, 7])
+        .collect();
+    mesh
+}
+
+/// The pieces by breadth-first search over the triangles' edges, each vertex labelled with
+/// the smallest vertex index of its piece: the plain reference of [`pieces`].
+fn pieces_by_search(mesh: &Mesh) -> Vec<usize> {
+    let n = mesh.positions.len();
+    let mut neighbours = vec![Vec::new(); n];
+    for t in &mesh.triangles {
+        for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
+            neighbours[a as usize].push(b as usize);
+            neighbours[b as usize].push(a as usize);
+        }
+    }
+    let mut label = vec![usize::MAX; n];
+    for start in 0..n {
+        if label[start] != usize::MAX {
+            continue;
+        }
+        let mut queue = std::collections::VecDeque::from([start]);
+        label[start] = start;
+        while let Some(v) = queue.pop_front() {
+            for &u in &neighbours[v] {
+                if label[u] == usize::MAX {
+                    label[u] = start;
+                    queue.push_back(u);
+                }
+            }
+        }
+    }
+    label
+}
+
+#[test]
+fn pieces_match_a_breadth_first_search_and_small_ones_are_dropped() {
+    let mesh = two_balls();
+    // The same partition as the reference: two vertices share a label in one exactly when
+    // they share it in the other.
+    use std::collections::HashSet;
+    let (fast, reference) = (pieces(&mesh), pieces_by_search(&mesh));
+    let pairs: HashSet<(u32, usize)> = fast.iter().copied().zip(reference.clone()).collect();
+    assert_eq!(pairs.len(), 2, "two balls, two pieces: {pairs:?}");
+    assert_eq!(fast.iter().collect::<HashSet<_>>().len(), 2);
+    assert_eq!(reference.iter().collect::<HashSet<_>>().len(), 2);
+    let near_small = |p: &[f32; 3]| length([p[0] - 0.3, p[1] - 0.3, p[2] - 0.3]) < 0.1;
+    let small = mesh.positions.iter().filter(|p| near_small(p)).count();
+    assert!(small > 20 && small * 4 < mesh.positions.len(), "{small}");
+
+    // Below the small ball's share nothing goes; above it the small ball goes, whole, and
+    // every kept triangle is an original triangle with its vertices' normals and colours.
+    let share = small as f64 / (mesh.positions.len() - small) as f64;
+    for min_piece in [0.0, share * 0.99] {
+        let (kept, counts) = drop_small_pieces(&mesh, min_piece).unwrap();
+        assert_eq!(kept, mesh, "min_piece {min_piece}");
+        assert_eq!(
+            counts,
+            Pieces {
+                kept: 2,
+                dropped: 0,
+                dropped_vertices: 0
+            }
+        );
+    }
+    for min_piece in [share * 1.01, 0.5, 1.0] {
+        let (kept, counts) = drop_small_pieces(&mesh, min_piece).unwrap();
+        let expected = Pieces {
+            kept: 1,
+            dropped: 1,
+            dropped_vertices: small,
+        };
+        assert_eq!(counts, expected, "min_piece {min_piece}");
+        assert_eq!(kept.positions.len(), mesh.positions.len() - small);
+        assert!(!kept.positions.iter().any(near_small));
+        assert_eq!(kept.normals.len(), kept.positions.len());
+        assert_eq!(kept.colors.len(), kept.positions.len());
+        let corners = |m: &Mesh, t: &[u32; 3]| {
+            t.map(|v| {
+                (
+                    m.positions[v as usize],
+                    m.normals[v as usize],
+                    m.colors[v as usize],
+                )
+            })
+        };
+        let expected: Vec<_> = mesh
+            .triangles
+            .iter()
+            .filter(|t| !near_small(&mesh.positions[t[0] as usize]))
+            .map(|t| corners(&mesh, t))
+            .collect();
+        let got: Vec<_> = kept.triangles.iter().map(|t| corners(&kept, t)).collect();
+        assert_eq!(got, expected);
+    }
+}
+
+#[test]
+fn pieces_of_equal_size_empty_meshes_and_bad_fractions() {
+    // A mesh of two separate triangles: two pieces of three vertices, both the largest.
+    let mesh = Mesh {
+        positions: vec![[0.0; 3]; 6],
+        triangles: vec![[0, 1, 2], [3, 4, 5]],
+        ..Mesh::default()
+    };
+    let (kept, counts) = drop_small_pieces(&mesh, 1.0).unwrap();
+    assert_eq!(kept, mesh);
+    assert_eq!(
+        counts,
+        Pieces {
+            kept: 2,
+            dropped: 0,
+            dropped_vertices: 0
+        }
+    );
+    let (kept, counts) = drop_small_pieces(&Mesh::default(), 0.5).unwrap();
+    assert_eq!(kept, Mesh::default());
+    assert_eq!(counts, Pieces::default());
+    for bad in [-0.01, 1.5, f64::NAN, f64::INFINITY] {
+        let e = drop_small_pieces(&mesh, bad).unwrap_err();
+        assert!(e.to_string().contains("--min-piece"), "{e}");
+    }
 }
