@@ -56,6 +56,12 @@ pub fn run(cmd: ExportCommand) -> anyhow::Result<()> {
 fn mesh(args: MeshArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     super::output_file(&args.out)?;
+    let options = MeshOptions {
+        resolution: args.resolution,
+        threshold: args.threshold,
+        min_piece: args.min_piece,
+    };
+    options.check()?;
     let model = load_for_sampling(&args.checkpoint, args.backend)?;
     println!(
         "checkpoint {} ({} model, {:.2} kimg)",
@@ -63,11 +69,6 @@ fn mesh(args: MeshArgs) -> anyhow::Result<()> {
         model.config.model.preset,
         model.state.images as f64 / 1000.0
     );
-    let options = MeshOptions {
-        resolution: args.resolution,
-        threshold: args.threshold,
-        min_piece: args.min_piece,
-    };
     let made = generator_mesh(&model, args.seed, options)
         .with_context(|| format!("seed {} at --resolution {}", args.seed, args.resolution))?;
     save_mesh(&args.out, &made.mesh)?;

@@ -344,6 +344,23 @@ impl MeshOptions {
     /// The default piece filter of `volux export mesh`: a twentieth of the head. The specks of
     /// the shipped model are tens of vertices beside a head of tens of thousands.
     pub const MIN_PIECE: f64 = 0.05;
+
+    /// Refuses a resolution outside 16 to 512, a threshold that is not a positive finite
+    /// density and a piece fraction outside `[0, 1]`, naming the flag (before any work).
+    pub fn check(&self) -> Result<(), MeshError> {
+        if !(16..=512).contains(&self.resolution) {
+            return Err(MeshError::Resolution(self.resolution));
+        }
+        if let Some(t) = self.threshold
+            && !(t.is_finite() && t > 0.0)
+        {
+            return Err(MeshError::Threshold(t));
+        }
+        if !(0.0..=1.0).contains(&self.min_piece) {
+            return Err(MeshError::MinPiece(self.min_piece));
+        }
+        Ok(())
+    }
 }
 
 /// What [`generator_mesh`] made.
@@ -367,17 +384,7 @@ pub fn generator_mesh(
     seed: u64,
     options: MeshOptions,
 ) -> Result<GeneratorMesh, MeshError> {
-    if !(16..=512).contains(&options.resolution) {
-        return Err(MeshError::Resolution(options.resolution));
-    }
-    if let Some(t) = options.threshold
-        && !(t.is_finite() && t > 0.0)
-    {
-        return Err(MeshError::Threshold(t));
-    }
-    if !(0.0..=1.0).contains(&options.min_piece) {
-        return Err(MeshError::MinPiece(options.min_piece));
-    }
+    options.check()?;
     let (g, device) = (&model.g, &model.device);
     let z_dim = model.config.generator().mapping.z_dim;
     let z = sampling::latents(&[seed], z_dim, device);
