@@ -225,45 +225,30 @@ fn a_basis_of_template_planes_keeps_the_gradients_and_each_latent_reads_its_own_
         field.forward(a, wa, FieldWants::ALL),
         field.forward(b, wb, FieldWants::ALL),
     );
-    let close = |got: Vec<f32>, want: Vec<f32>, what: &str| {
-        assert_eq!(got.len(), want.len());
-        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+    // Each output as `[latents, values per latent]`: the batch's first half is latent 0's.
+    let outputs = |o: FieldOutput, latents: usize| {
+        [
+            ("sigma", o.sigma.reshape([latents, n])),
+            (
+                "grad sigma",
+                o.grad_sigma.unwrap().reshape([latents, 3 * n]),
+            ),
+            ("albedo", o.albedo.unwrap().reshape([latents, 3 * n])),
+        ]
+    };
+    let alone = outputs(alone_a, 1).into_iter().zip(outputs(alone_b, 1));
+    for ((what, both), ((_, a), (_, b))) in outputs(both, 2).into_iter().zip(alone) {
+        let both = to_f32_vec(both);
+        let want: Vec<f32> = [to_f32_vec(a), to_f32_vec(b)].concat();
+        assert_eq!(both.len(), want.len());
+        for (i, (g, w)) in both.iter().zip(&want).enumerate() {
             assert!(
                 (g - w).abs() <= 1e-4 * (1.0 + w.abs()),
-                "{what} {i}: {g} vs {w}"
+                "{what} of latent {}: {g} vs {w}",
+                i / (want.len() / 2)
             );
         }
-    };
-    let halves = |t: Tensor<2>| {
-        let v = to_f32_vec(t);
-        let (x, y) = v.split_at(v.len() / 2);
-        (x.to_vec(), y.to_vec())
-    };
-    let (sa, sb) = halves(both.sigma);
-    close(sa, to_f32_vec(alone_a.sigma), "sigma of latent 0");
-    close(sb, to_f32_vec(alone_b.sigma), "sigma of latent 1");
-    let (ga, gb) = halves(both.grad_sigma.unwrap().reshape([2, 3 * n]));
-    close(
-        ga,
-        to_f32_vec(alone_a.grad_sigma.unwrap()),
-        "grad sigma of latent 0",
-    );
-    close(
-        gb,
-        to_f32_vec(alone_b.grad_sigma.unwrap()),
-        "grad sigma of latent 1",
-    );
-    let (aa, ab) = halves(both.albedo.unwrap().reshape([2, 3 * n]));
-    close(
-        aa,
-        to_f32_vec(alone_a.albedo.unwrap()),
-        "albedo of latent 0",
-    );
-    close(
-        ab,
-        to_f32_vec(alone_b.albedo.unwrap()),
-        "albedo of latent 1",
-    );
+    }
 }
 
 #[test]

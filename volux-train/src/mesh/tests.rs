@@ -250,6 +250,13 @@ fn the_shipped_heads_field_normals_agree_with_their_meshes() {
     );
 }
 
+/// Both of two pieces kept, none dropped.
+const TWO_KEPT: Pieces = Pieces {
+    kept: 2,
+    dropped: 0,
+    dropped_vertices: 0,
+};
+
 /// Two balls far apart, of radius 0.25 and 0.06, as densities on a grid of 48.
 fn two_balls() -> Mesh {
     let big = ball(0.25, 100.0, 0.01);
@@ -321,14 +328,7 @@ fn pieces_match_a_breadth_first_search_and_small_ones_are_dropped() {
     for min_piece in [0.0, share * 0.99] {
         let (kept, counts) = drop_small_pieces(&mesh, min_piece).unwrap();
         assert_eq!(kept, mesh, "min_piece {min_piece}");
-        assert_eq!(
-            counts,
-            Pieces {
-                kept: 2,
-                dropped: 0,
-                dropped_vertices: 0
-            }
-        );
+        assert_eq!(counts, TWO_KEPT);
     }
     for min_piece in [share * 1.01, 0.5, 1.0] {
         let (kept, counts) = drop_small_pieces(&mesh, min_piece).unwrap();
@@ -372,14 +372,7 @@ fn pieces_of_equal_size_empty_meshes_and_bad_fractions() {
     };
     let (kept, counts) = drop_small_pieces(&mesh, 1.0).unwrap();
     assert_eq!(kept, mesh);
-    assert_eq!(
-        counts,
-        Pieces {
-            kept: 2,
-            dropped: 0,
-            dropped_vertices: 0
-        }
-    );
+    assert_eq!(counts, TWO_KEPT);
     let (kept, counts) = drop_small_pieces(&Mesh::default(), 0.5).unwrap();
     assert_eq!(kept, Mesh::default());
     assert_eq!(counts, Pieces::default());
