@@ -81,6 +81,11 @@ pub struct SwdRow {
     pub layer: String,
     pub model: Swd,
     pub data: Swd,
+    /// The data brought down to the volume's resolution and back up, against the data: what a
+    /// perfect volume scores when nothing adds detail above its rays (layers compared above
+    /// the volume's resolution only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub data_through_volume: Option<Swd>,
 }
 
 /// Everything `volux eval` measured.
@@ -214,6 +219,15 @@ impl EvalReport {
                 row.data.mean,
                 levels(&row.data)
             );
+            if let Some(through) = &row.data_through_volume {
+                let _ = writeln!(
+                    s,
+                    "  {:<8} data through the volume's resolution {:.1}  ({})",
+                    "",
+                    through.mean,
+                    levels(through)
+                );
+            }
         }
         let _ = writeln!(s, "\n{:.1} s", self.seconds);
         s

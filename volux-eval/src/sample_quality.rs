@@ -11,6 +11,7 @@ use burn::tensor::Device;
 use volux_data::batch::Batch;
 use volux_data::examples::Examples;
 use volux_data::layers::{Layer, Layers};
+use volux_data::resample::resize;
 use volux_data::training_sample::LightingDraw;
 use volux_envmap::LightMapSet;
 use volux_model::generator::Generator;
@@ -171,6 +172,56 @@ impl DataSets {
     pub fn floor(&self, options: &SwdOptions) -> Result<Vec<Swd>, EvalError> {
         distances(&self.compared, &self.real, &self.other, options)
     }
+
+    /// Per compared layer, the first draw brought down to `side_lo` and back up
+    /// ([`through_resolution`]) against the second: what a perfect volume of `side_lo` rays
+    /// scores when nothing adds detail above its resolution. `None` for layers compared at
+    /// `side_lo` or below.
+    pub fn through_resolution_distance(
+        &self,
+        side_lo: usize,
+        options: &SwdOptions,
+    ) -> Result<Vec<Option<Swd>>, EvalError> {
+        self.real
+            .iter()
+            .zip(&self.other)
+            .map(|(real, other)| {
+                if real.side <= side_lo {
+                    return Ok(None);
+                }
+                Ok(Some(swd(
+                    &through_resolution(real, side_lo),
+                    other,
+                    options,
+                )?))
+            })
+            .collect()
+    }
+}
+
+/// Each image of a 3-channel `set` area-averaged to `side_lo` and enlarged back bilinearly
+/// (`volux_data::resample::resize` both ways, the data pipeline's own resampling): its detail
+/// above `side_lo` taken away.
+pub fn through_resolution(set: &ImageSet, side_lo: usize) -> ImageSet {
+    assert_eq!(set.channels, 3, "planar RGB images");
+    let side = set.side;
+    let images = set
+        .images
+        .iter()
+        .map(|img| {
+            let n = side * side;
+            let pixels: Vec<[f32; 3]> = (0..n)
+                .map(|i| [img[i], img[n + i], img[2 * n + i]])
+                .collect();
+            let low = resize(&pixels, side, side_lo);
+            planar(&resize(&low, side_lo, side))
+        })
+        .collect();
+    ImageSet {
+        side,
+        channels: 3,
+        images,
+    }
 }
 
 /// Per compared layer, `a` against `b`.
@@ -243,14 +294,17 @@ pub fn sample_quality(
     let fake = fake_sets(g, device, config, &data, first_seed, batch)?;
     let model = distances(&data.compared, &fake, &data.other, options)?;
     let floor = data.floor(options)?;
+    let through =
+        data.through_resolution_distance(config.generator().volume_resolution, options)?;
     Ok(data
         .compared
         .iter()
-        .zip(model.into_iter().zip(floor))
-        .map(|(c, (model, data))| SwdRow {
+        .zip(model.into_iter().zip(floor).zip(through))
+        .map(|(c, ((model, data), data_through_volume))| SwdRow {
             layer: c.name.to_string(),
             model,
             data,
+            data_through_volume,
         })
         .collect())
 }
@@ -278,5 +332,54 @@ mod tests {
         let normals = compared(&Layers::from_fn(|l| l == Layer::NormalsLo));
         assert_eq!(empty_sets(&normals, 64, 32)[0].side, 32);
         assert!(compared(&Layers::default()).is_empty());
+    }
+
+    /// Through a lower resolution, a linear ramp keeps its values away from the edges, a
+    /// pixel-sized checkerboard becomes its mean, and the distance is left out of layers
+    /// already at that resolution.
+    #[test]
+    fn through_resolution_takes_away_only_the_detail_above_it() {
+        let (side, lo) = (8, 4);
+        let n = side * side;
+        let ramp: Vec<f32> = (0..3 * n).map(|i| ((i % n) % side) as f32 / 8.0).collect();
+        let checker: Vec<f32> = (0..3 * n)
+            .map(|i| (((i % n) % side + (i % n) / side) % 2) as f32)
+            .collect();
+        let mut set = ImageSet::new(side, 3);
+        set.images = vec![ramp.clone(), checker];
+        let out = through_resolution(&set, lo);
+        assert_eq!((out.side, out.channels, out.images.len()), (side, 3, 2));
+        for c in 0..3 {
+            for y in 0..side {
+                for x in 1..side - 1 {
+                    let at = c * n + y * side + x;
+                    assert!((out.images[0][at] - ramp[at]).abs() < 1e-6, "ramp at {x}");
+                }
+            }
+        }
+        assert!(out.images[1].iter().all(|v| (v - 0.5).abs() < 1e-6));
+        let mut normals = ImageSet::new(lo, 3);
+        normals.images = vec![vec![0.0; 3 * lo * lo]];
+        let data = DataSets {
+            lights: Arc::new(Vec::new()),
+            poses: Vec::new(),
+            draws: Vec::new(),
+            compared: compared(&Layers::from_fn(|_| true)),
+            real: vec![set.clone(), normals.clone(), set.clone()],
+            other: vec![set.clone(), normals, set],
+        };
+        let options = SwdOptions {
+            min_side: side,
+            ..SwdOptions::default()
+        };
+        let got = data.through_resolution_distance(lo, &options).unwrap();
+        assert!(
+            got[1].is_none(),
+            "the normals are compared at the volume's side"
+        );
+        let relit = got[2].as_ref().unwrap();
+        assert!(relit.mean > 0.0, "the checkerboard's detail is gone");
+        let identical = swd(&data.real[2], &data.other[2], &options).unwrap();
+        assert_eq!(identical.mean, 0.0);
     }
 }

@@ -178,17 +178,19 @@ pub fn compositing(
 }
 
 /// The upsampler on a batch of `side x side` inputs: per block the albedo's bilinear x2, two
-/// modulated 1x1 convolutions and the stride-1 blur after the pixel shuffle.
+/// modulated `kernel x kernel` convolutions (a layer over each pixel's stacked neighbourhood)
+/// and the stride-1 blur after the pixel shuffle.
 pub fn upsampler(c: &UpsamplerConfig, batch: usize, side: usize) -> f64 {
     let mut total = 0.0;
     let mut r = side;
+    let taps = c.kernel * c.kernel;
     for i in 0..c.blocks {
-        let c_in = if i == 0 { c.in_channels } else { c.channels };
+        let c_in = taps * if i == 0 { c.in_channels } else { c.channels };
         let pixels = batch * r * r;
         total += batch as f64 * bilinear_upsample(3, r, r, 2);
         total += modulation(c.w_dim, c_in, c.channels, batch) + matmul(pixels, c.channels, c_in);
-        total += modulation(c.w_dim, c.channels, 4 * c.channels, batch)
-            + matmul(pixels, 4 * c.channels, c.channels);
+        total += modulation(c.w_dim, taps * c.channels, 4 * c.channels, batch)
+            + matmul(pixels, 4 * c.channels, taps * c.channels);
         total += batch as f64 * depthwise(c.channels, 9, 2 * r, 2 * r);
         r *= 2;
     }
@@ -294,7 +296,8 @@ pub fn generator(c: &GeneratorConfig, batch: usize, wants: GeneratorWants) -> Ge
                     3 + c.neiif.width,
                     c.upsampler_channels,
                     blocks,
-                ),
+                )
+                .with_kernel(c.upsampler_kernel),
                 batch,
                 side,
             )
@@ -451,6 +454,19 @@ mod tests {
         assert_eq!(discriminator(&c, 1), want);
         assert_eq!(discriminator(&c, 3), 3.0 * want);
         assert_eq!(discriminator_input_gradient(&c, 1), 2.0 * want);
+    }
+
+    #[test]
+    fn upsampler_counts_both_layers_of_each_block_at_either_kernel() {
+        // w of 2, 5 input channels, 4 channels, one block on a 3x3 input of one element.
+        let m = |d_in: f64, d_out: f64| 2.0 * (d_in * 2.0 + d_out * d_in);
+        let c = UpsamplerConfig::new(2, 5, 4, 1);
+        let rest = bilinear_upsample(3, 3, 3, 2) + depthwise(4, 9, 6, 6);
+        let one = m(5.0, 4.0) + 2.0 * 9.0 * 4.0 * 5.0 + m(4.0, 16.0) + 2.0 * 9.0 * 16.0 * 4.0;
+        assert_eq!(upsampler(&c, 1, 3), one + rest);
+        // 3x3: each layer reads 9 taps of every input channel.
+        let three = m(45.0, 4.0) + 2.0 * 9.0 * 4.0 * 45.0 + m(36.0, 16.0) + 2.0 * 9.0 * 16.0 * 36.0;
+        assert_eq!(upsampler(&c.clone().with_kernel(3), 1, 3), three + rest);
     }
 
     #[test]

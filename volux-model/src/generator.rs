@@ -37,6 +37,9 @@ pub struct GeneratorConfig {
     pub upsampler_channels: usize,
     /// Channels per level of the relighting U-Net, finest first.
     pub relighting_channels: Vec<usize>,
+    /// Side of the upsampler's convolutions: 1 (the paper's) or 3 ([`UpsamplerConfig::kernel`]).
+    #[config(default = 1)]
+    pub upsampler_kernel: usize,
 }
 
 /// Why a generator cannot be built or run.
@@ -54,6 +57,8 @@ pub enum GeneratorError {
         divisor: usize,
         resolution: usize,
     },
+    #[error("upsampler_kernel {0} must be 1 or 3")]
+    UpsamplerKernel(usize),
     #[error("renderer samples")]
     Samples(#[from] crate::volume_rendering::SamplesError),
     #[error("{what} needs lighting (light maps and yaw per batch element)")]
@@ -120,6 +125,9 @@ impl GeneratorConfig {
             });
         }
         self.renderer.check_samples()?;
+        if !crate::upsampler::KERNELS.contains(&self.upsampler_kernel) {
+            return Err(GeneratorError::UpsamplerKernel(self.upsampler_kernel));
+        }
         let levels = self.relighting_channels.len();
         let divisor = 1 << levels.saturating_sub(1);
         if levels == 0 || o % divisor != 0 {
@@ -142,7 +150,8 @@ impl GeneratorConfig {
             3 + neiif.feature_dim(),
             self.upsampler_channels,
             blocks,
-        );
+        )
+        .with_kernel(self.upsampler_kernel);
         // The networks draw their initial weights in this order (NeIIF, upsampler,
         // relighting, mapping): a run is a pure function of its seed only while it stays.
         let upsampler = upsampler_config.init(device);

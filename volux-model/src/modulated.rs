@@ -18,7 +18,7 @@ use crate::batched_matmul::batched_matmul;
 use crate::equalized::{EqualizedLinear, EqualizedLinearConfig};
 
 /// Added under the square root of the demodulation (StyleGAN2's value).
-const DEMOD_EPS: f64 = 1e-8;
+pub(crate) const DEMOD_EPS: f64 = 1e-8;
 
 /// Configuration of a [`ModulatedLinear`] layer.
 #[derive(Config, Debug)]

@@ -11,6 +11,13 @@
 //! scaled by the block's fade-in weight. With a weight of 0 a block's albedo is a plain
 //! bilinear upsampling, with 1 it is fully learned: progressive growing (stage 1) fades blocks
 //! in from the lowest resolution up, as PGGAN fades in its ToRGB outputs.
+//!
+//! `kernel = 3` (a deviation from the paper, off by default) makes both convolutions of every
+//! block 3x3: each pixel's layer reads its 3x3 neighbourhood ([`neighbourhoods`], edges
+//! replicated), so the block can draw detail finer than the volume's rays from how the
+//! features change between them. It is the same modulated layer on the stacked
+//! neighbourhood, so each tap of each input channel has its own style (StyleGAN2's
+//! modulated convolution shares one style among a channel's taps).
 
 use burn::config::Config;
 use burn::module::Module;
@@ -32,6 +39,9 @@ pub struct UpsamplerConfig {
     pub channels: usize,
     /// Number of x2 blocks (1 for 64 -> 128, 2 for 64 -> 256).
     pub blocks: usize,
+    /// Side of both convolutions of every block: 1 (the paper's) or 3.
+    #[config(default = 1)]
+    pub kernel: usize,
 }
 
 /// One x2 block.
@@ -66,6 +76,12 @@ impl UpsamplerConfig {
             "the first three channels are the albedo"
         );
         assert!(self.in_channels >= 3, "the input starts with the albedo");
+        assert!(
+            KERNELS.contains(&self.kernel),
+            "upsampler kernel {} is not one of {KERNELS:?}",
+            self.kernel
+        );
+        let taps = self.kernel * self.kernel;
         let blocks = (0..self.blocks)
             .map(|i| {
                 let c_in = if i == 0 {
@@ -74,9 +90,14 @@ impl UpsamplerConfig {
                     self.channels
                 };
                 UpsampleBlock {
-                    conv1: ModulatedLinearConfig::new(self.w_dim, c_in, self.channels).init(device),
-                    conv2: ModulatedLinearConfig::new(self.w_dim, self.channels, 4 * self.channels)
+                    conv1: ModulatedLinearConfig::new(self.w_dim, taps * c_in, self.channels)
                         .init(device),
+                    conv2: ModulatedLinearConfig::new(
+                        self.w_dim,
+                        taps * self.channels,
+                        4 * self.channels,
+                    )
+                    .init(device),
                     shuffle: PixelShuffleConfig::new(2).init(),
                 }
             })
@@ -85,18 +106,41 @@ impl UpsamplerConfig {
     }
 }
 
-/// A modulated layer applied per pixel (a modulated 1x1 convolution): `[b, c, h, w]`.
-fn conv1x1(layer: &ModulatedLinear, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
-    per_pixel(x, |x| layer.forward(x, w))
+/// The sides [`UpsamplerConfig::kernel`] may take.
+pub const KERNELS: [usize; 2] = [1, 3];
+
+/// A modulated layer applied per pixel to the `kernel x kernel` neighbourhoods of `x: [b, c, h,
+/// w]` (a modulated `kernel x kernel` convolution, edges replicated).
+fn conv(layer: &ModulatedLinear, x: Tensor<4>, w: Tensor<2>, kernel: usize) -> Tensor<4> {
+    per_pixel(neighbourhoods(x, kernel), |x| layer.forward(x, w))
 }
 
-/// [`conv1x1`] followed by the smooth activation, the bias and activation in one fused
+/// [`conv`] followed by the smooth activation, the bias and activation in one fused
 /// operation ([`fused_activation::activate`]).
-fn conv1x1_activated(layer: &ModulatedLinear, x: Tensor<4>, w: Tensor<2>) -> Tensor<4> {
-    per_pixel(x, |x| {
+fn conv_activated(layer: &ModulatedLinear, x: Tensor<4>, w: Tensor<2>, kernel: usize) -> Tensor<4> {
+    per_pixel(neighbourhoods(x, kernel), |x| {
         let m = layer.modulation(w);
         fused_activation::activate(layer.linear(x, &m), layer.bias.val())
     })
+}
+
+/// Every pixel's `kernel x kernel` neighbourhood stacked along the channels, edges replicated:
+/// `[b, c, h, w] -> [b, kernel^2 c, h, w]`, tap-major (channel `(dy kernel + dx) c + i` is
+/// input channel `i` at offset `(dy - kernel / 2, dx - kernel / 2)`). Kernel 1 is `x` itself.
+pub fn neighbourhoods(x: Tensor<4>, kernel: usize) -> Tensor<4> {
+    match kernel {
+        1 => x,
+        3 => {
+            let [_, _, h, w] = x.dims();
+            let padded = pad_replicate(x);
+            let taps = (0..3)
+                .flat_map(|dy| (0..3).map(move |dx| (dy, dx)))
+                .map(|(dy, dx)| padded.clone().narrow(2, dy, h).narrow(3, dx, w))
+                .collect();
+            Tensor::cat(taps, 1)
+        }
+        k => panic!("upsampler kernel {k} is not one of {KERNELS:?}"),
+    }
 }
 
 /// `f` applied to `x: [batch, c, h, w]` as `[batch, h w, c]` pixels, back to `[batch, o, h, w]`.
@@ -166,6 +210,19 @@ pub(crate) fn tent_taps(factor: usize) -> Vec<f32> {
         .collect()
 }
 
+impl UpsampleBlock {
+    /// Side of the block's convolutions, from its second layer's shape (`kernel^2 C` inputs,
+    /// `4 C` outputs).
+    pub fn kernel(&self) -> usize {
+        let [d_out, d_in] = self.conv2.weight.dims();
+        let taps = 4 * d_in / d_out;
+        KERNELS
+            .into_iter()
+            .find(|k| k * k == taps)
+            .expect("the block was built with one of KERNELS")
+    }
+}
+
 impl Upsampler {
     /// Resolution factor.
     pub fn factor(&self) -> usize {
@@ -182,8 +239,9 @@ impl Upsampler {
         let mut x = x;
         for (i, block) in self.blocks.iter().enumerate() {
             let albedo = bilinear_upsample(x.clone().narrow(1, 0, 3), 2);
-            let h = conv1x1_activated(&block.conv1, x, w.clone());
-            let y = blur_stride1(block.shuffle.forward(conv1x1(&block.conv2, h, w.clone())));
+            let k = block.kernel();
+            let h = conv_activated(&block.conv1, x, w.clone(), k);
+            let y = blur_stride1(block.shuffle.forward(conv(&block.conv2, h, w.clone(), k)));
             let c = y.dims()[1];
             let alpha = fade.map_or(1.0, |f| f[i]);
             let residual = y.clone().narrow(1, 0, 3).mul_scalar(alpha);
@@ -201,8 +259,12 @@ impl Upsampler {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::backend::to_f32_vec;
-    use burn::tensor::{Distribution, TensorData};
+    use crate::backend::{to_f32_vec, to_f64_vec};
+    use crate::modulated::DEMOD_EPS;
+    use crate::test_support::normals;
+    use burn::module::{Module, Param};
+    use burn::tensor::{DType, Distribution, TensorData};
+    use volux_envmap::random::SplitMix64;
 
     #[test]
     fn blur_matches_a_reference_loop_and_keeps_constants() {
@@ -263,11 +325,202 @@ mod tests {
         }
     }
 
+    /// `values` as an f64 tensor of `shape` on `device`.
+    fn f64_tensor<const D: usize>(
+        values: Vec<f64>,
+        shape: [usize; D],
+        device: &Device,
+    ) -> Tensor<D> {
+        Tensor::from_data(TensorData::new(values, shape), (device, DType::F64))
+    }
+
+    #[test]
+    fn neighbourhoods_stack_the_replicated_3x3_taps() {
+        let device = Device::flex();
+        let (b, c, h, w) = (2, 3, 4, 5);
+        let x = Tensor::<4>::random([b, c, h, w], Distribution::Normal(0.0, 1.0), &device);
+        let xv = to_f32_vec(x.clone());
+        assert_eq!(to_f32_vec(neighbourhoods(x.clone(), 1)), xv);
+        let got = to_f32_vec(neighbourhoods(x, 3));
+        assert_eq!(got.len(), 9 * xv.len());
+        for n in 0..b {
+            for (tap, (dy, dx)) in (0..3usize)
+                .flat_map(|dy| (0..3usize).map(move |dx| (dy, dx)))
+                .enumerate()
+            {
+                for i in 0..c {
+                    for y in 0..h {
+                        for z in 0..w {
+                            let sy = (y + dy).saturating_sub(1).min(h - 1);
+                            let sz = (z + dx).saturating_sub(1).min(w - 1);
+                            let want = xv[((n * c + i) * h + sy) * w + sz];
+                            let at = (((n * 9 + tap) * c + i) * h + y) * w + z;
+                            assert_eq!(
+                                got[at], want,
+                                "image {n} tap {tap} channel {i} at ({y}, {z})"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The modulated, demodulated 3x3 convolution of a block's first layer, in f64 loops from
+    /// the definition (edges replicated, a style per tap and input channel), then the bias.
+    #[test]
+    fn a_kernel_3_layer_is_a_modulated_3x3_convolution() {
+        let device = Device::flex();
+        let (b, c, o, h, w, w_dim) = (2, 5, 4, 4, 3, 6);
+        let up = UpsamplerConfig::new(w_dim, c, o, 1)
+            .with_kernel(3)
+            .init(&device)
+            .map(&mut crate::test_support::Reseed::new(7, DType::F64));
+        let layer = &up.blocks[0].conv1;
+        let mut rng = SplitMix64::new(8);
+        let xv = normals(&mut rng, b * c * h * w);
+        let wv = normals(&mut rng, b * w_dim);
+        let x = f64_tensor(xv.clone(), [b, c, h, w], &device);
+        let wt = f64_tensor(wv.clone(), [b, w_dim], &device);
+        let got = to_f64_vec(conv(layer, x, wt.clone(), 3));
+        let styles = to_f64_vec(layer.affine.forward(wt));
+        let weight = to_f64_vec(layer.effective_weight());
+        let bias = to_f64_vec(layer.bias.val());
+        let d_in = 9 * c;
+        for n in 0..b {
+            for oi in 0..o {
+                let row: Vec<f64> = (0..d_in)
+                    .map(|j| weight[oi * d_in + j] * styles[n * d_in + j])
+                    .collect();
+                let norm = (row.iter().map(|v| v * v).sum::<f64>() + DEMOD_EPS).sqrt();
+                for y in 0..h {
+                    for z in 0..w {
+                        let mut acc = 0.0;
+                        for dy in 0..3 {
+                            for dx in 0..3 {
+                                let sy = (y + dy).saturating_sub(1).min(h - 1);
+                                let sz = (z + dx).saturating_sub(1).min(w - 1);
+                                for i in 0..c {
+                                    acc += row[(dy * 3 + dx) * c + i]
+                                        * xv[((n * c + i) * h + sy) * w + sz];
+                                }
+                            }
+                        }
+                        let want = acc / norm + bias[oi];
+                        let g = got[((n * o + oi) * h + y) * w + z];
+                        assert!(
+                            (g - want).abs() < 1e-12 * (1.0 + want.abs()),
+                            "{g} vs {want}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    /// Gradients of a kernel-3 upsampler (two blocks, every fade weight 1) in its input and in
+    /// both layers' weights and styles, against central differences of the same f64 forward.
+    #[test]
+    fn kernel_3_gradients_match_central_differences() {
+        let device = Device::flex().autodiff();
+        let (b, c, ch, side, w_dim) = (2, 5, 4, 3, 3);
+        let up = UpsamplerConfig::new(w_dim, c, ch, 2)
+            .with_kernel(3)
+            .init(&device)
+            .map(&mut crate::test_support::Reseed::new(11, DType::F64));
+        let mut rng = SplitMix64::new(12);
+        let xv = normals(&mut rng, b * c * side * side);
+        let wv = normals(&mut rng, b * w_dim);
+        let out = 4 * side;
+        let r = f64_tensor(
+            normals(&mut rng, b * ch * out * out),
+            [b, ch, out, out],
+            &device,
+        );
+        let loss = |up: &Upsampler, x: Vec<f64>| {
+            let y = up.forward(
+                f64_tensor(x, [b, c, side, side], &device),
+                f64_tensor(wv.clone(), [b, w_dim], &device),
+                None,
+            );
+            (y * r.clone()).sum()
+        };
+        let x = f64_tensor(xv.clone(), [b, c, side, side], &device).require_grad();
+        let y = up.forward(x.clone(), f64_tensor(wv.clone(), [b, w_dim], &device), None);
+        let grads = (y * r.clone()).sum().backward();
+        let h = 1e-6;
+        let central = |plus: f64, minus: f64| (plus - minus) / (2.0 * h);
+        let close = |got: f64, want: f64, what: &str| {
+            assert!(
+                got != 0.0 && (got - want).abs() < 1e-6 * (1.0 + want.abs()),
+                "{what}: autodiff {got:e} vs central differences {want:e}"
+            );
+        };
+        let gx = to_f64_vec(x.grad(&grads).unwrap());
+        for k in [0, 7, 20, xv.len() - 1] {
+            let shifted = |d: f64| {
+                let mut v = xv.clone();
+                v[k] += d;
+                to_f64_vec(loss(&up, v))[0]
+            };
+            close(
+                gx[k],
+                central(shifted(h), shifted(-h)),
+                &format!("input {k}"),
+            );
+        }
+        type Pick = fn(&mut Upsampler) -> &mut Param<Tensor<2>>;
+        let params: [(&str, Pick, usize); 4] = [
+            (
+                "block 0 conv1 weight",
+                |u| &mut u.blocks[0].conv1.weight,
+                13,
+            ),
+            (
+                "block 0 conv2 weight",
+                |u| &mut u.blocks[0].conv2.weight,
+                40,
+            ),
+            (
+                "block 1 conv1 weight",
+                |u| &mut u.blocks[1].conv1.weight,
+                30,
+            ),
+            (
+                "block 1 conv2 style",
+                |u| &mut u.blocks[1].conv2.affine.weight,
+                5,
+            ),
+        ];
+        for (what, pick, k) in params {
+            let got = to_f64_vec(pick(&mut up.clone()).grad(&grads).unwrap())[k];
+            let shifted = |d: f64| {
+                let mut u = up.clone();
+                let p = pick(&mut u);
+                let t = p.val();
+                let mut v = to_f64_vec(t.clone());
+                v[k] += d;
+                *p = Param::from_tensor(f64_tensor(v, t.dims(), &device));
+                to_f64_vec(loss(&u, xv.clone()))[0]
+            };
+            close(got, central(shifted(h), shifted(-h)), what);
+        }
+    }
+
     #[test]
     fn shapes_and_fade_in_zero_is_bilinear_albedo() {
+        for kernel in KERNELS {
+            fade_in_zero_is_bilinear_albedo(kernel);
+        }
+    }
+
+    fn fade_in_zero_is_bilinear_albedo(kernel: usize) {
         let device = Device::flex();
-        let up = UpsamplerConfig::new(8, 3 + 5, 12, 2).init(&device);
+        let up = UpsamplerConfig::new(8, 3 + 5, 12, 2)
+            .with_kernel(kernel)
+            .init(&device);
         assert_eq!(up.factor(), 4);
+        assert!(up.blocks.iter().all(|b| b.kernel() == kernel));
         let x = Tensor::<4>::random([2, 8, 4, 4], Distribution::Normal(0.0, 1.0), &device);
         let w = Tensor::<2>::random([2, 8], Distribution::Normal(0.0, 1.0), &device);
         let y = up.forward(x.clone(), w.clone(), None);

@@ -151,6 +151,10 @@ pub struct ModelConfig {
     /// `template_resolution`.
     #[serde(default)]
     pub template_basis: Option<usize>,
+    /// Side of both convolutions of every upsampler block: 1 (the paper's 1x1; the default)
+    /// or 3 (each pixel also reads its neighbours: detail finer than the volume's rays).
+    #[serde(default)]
+    pub upsampler_kernel: Option<usize>,
 }
 
 /// The `[model] encoding` key.
@@ -290,6 +294,12 @@ impl ModelConfig {
                 ));
             }
             g.neiif.template_basis = k;
+        }
+        if let Some(k) = self.upsampler_kernel {
+            if !volux_model::upsampler::KERNELS.contains(&k) {
+                return Err(format!("model.upsampler_kernel = {k} must be 1 or 3"));
+            }
+            g.upsampler_kernel = k;
         }
         if let Some(n) = self.mapping_layers {
             if !(1..=MAX_MAPPING_LAYERS).contains(&n) {
@@ -659,9 +669,12 @@ impl TrainConfig {
     }
 
     pub fn shapes(&self) -> String {
-        // `shading = "volume"` and `encoding = "axis-aligned"` are the defaults written out:
-        // the same model as no key.
+        // `shading = "volume"`, `encoding = "axis-aligned"` and `upsampler_kernel = 1` are the
+        // defaults written out: the same model as no key.
         let mut model = self.model.clone();
+        if model.upsampler_kernel == Some(1) {
+            model.upsampler_kernel = None;
+        }
         if model.shading == Some(ShadingKind::Volume) {
             model.shading = None;
         }

@@ -172,6 +172,33 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
         planes.shapes(),
         "a resume must match the basis"
     );
+    // The upsampler's kernel: the paper's 1x1 unless asked; 3 reaches the blocks' layers (a
+    // neighbourhood of 9 pixels each) and is part of what a resume must match, 1 written out
+    // is the default.
+    let paper = load(TINY).unwrap();
+    assert_eq!(paper.generator().upsampler_kernel, 1);
+    let spatial = load(&TINY.replace("\"small\"", "\"small\"\nupsampler_kernel = 3")).unwrap();
+    assert_eq!(spatial.generator().upsampler_kernel, 3);
+    let g = spatial
+        .generator()
+        .init(&burn::tensor::Device::flex())
+        .unwrap();
+    let block = &g.upsampler.blocks[0];
+    assert_eq!(block.kernel(), 3);
+    assert_eq!(
+        block.conv2.weight.dims(),
+        [
+            4 * spatial.generator().upsampler_channels,
+            9 * spatial.generator().upsampler_channels
+        ]
+    );
+    assert_ne!(
+        spatial.shapes(),
+        paper.shapes(),
+        "a resume must match the kernel"
+    );
+    let written = load(&TINY.replace("\"small\"", "\"small\"\nupsampler_kernel = 1")).unwrap();
+    assert_eq!(written.shapes(), paper.shapes());
     // The encoding: the paper's unless asked; part of what a resume must match.
     assert!(!load(TINY).unwrap().generator().neiif.rotated_encoding);
     for (key, rotated) in [("axis-aligned", false), ("rotated", true)] {
@@ -299,6 +326,14 @@ fn bad_configs_name_the_file_and_the_key() {
         (
             TINY.replace("\"small\"", "\"small\"\ntemplate_basis = 2"),
             "model.template_basis = 2 needs template planes",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nupsampler_kernel = 2"),
+            "model.upsampler_kernel = 2 must be 1 or 3",
+        ),
+        (
+            TINY.replace("\"small\"", "\"small\"\nupsampler_kernel = 5"),
+            "model.upsampler_kernel = 5",
         ),
         (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
         (
