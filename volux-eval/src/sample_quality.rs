@@ -182,13 +182,14 @@ impl DataSets {
         side_lo: usize,
         options: &SwdOptions,
     ) -> Result<Vec<Option<Swd>>, EvalError> {
-        self.real
+        self.compared
             .iter()
-            .zip(&self.other)
-            .map(|(real, other)| {
+            .zip(self.real.iter().zip(&self.other))
+            .map(|(c, (real, other))| {
                 if real.side <= side_lo {
                     return Ok(None);
                 }
+                tracing::info!("sample quality: {} through the volume's resolution", c.name);
                 Ok(Some(swd(
                     &through_resolution(real, side_lo),
                     other,

@@ -45,6 +45,18 @@ impl ModuleMapper for Reseed {
     }
 }
 
+/// Moves element `index` of parameter `p` by `delta` (in f64, stored back in the parameter's
+/// dtype on its device): one side of a central difference in a network's weight.
+pub fn shift_element<const D: usize>(p: &mut Param<Tensor<D>>, index: usize, delta: f64) {
+    let t = p.val();
+    let mut values = crate::backend::to_f64_vec(t.clone());
+    values[index] += delta;
+    *p = Param::from_tensor(Tensor::from_data(
+        TensorData::new(values, t.dims()),
+        (&t.device(), t.dtype()),
+    ));
+}
+
 /// A field whose density is another's times a constant (the stiff and empty cases of the
 /// renderer's tests).
 pub struct Scaled<'a, F: crate::field::Field>(pub &'a F, pub f64);

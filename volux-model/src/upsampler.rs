@@ -261,7 +261,7 @@ mod tests {
     use super::*;
     use crate::backend::{to_f32_vec, to_f64_vec};
     use crate::modulated::DEMOD_EPS;
-    use crate::test_support::normals;
+    use crate::test_support::{normals, shift_element};
     use burn::module::{Module, Param};
     use burn::tensor::{DType, Distribution, TensorData};
     use volux_envmap::random::SplitMix64;
@@ -496,11 +496,7 @@ mod tests {
             let got = to_f64_vec(pick(&mut up.clone()).grad(&grads).unwrap())[k];
             let shifted = |d: f64| {
                 let mut u = up.clone();
-                let p = pick(&mut u);
-                let t = p.val();
-                let mut v = to_f64_vec(t.clone());
-                v[k] += d;
-                *p = Param::from_tensor(f64_tensor(v, t.dims(), &device));
+                shift_element(pick(&mut u), k, d);
                 to_f64_vec(loss(&u, xv.clone()))[0]
             };
             close(got, central(shifted(h), shifted(-h)), what);

@@ -1,7 +1,7 @@
 use super::*;
 use crate::backend::{to_f32_vec, to_f64_vec};
 use crate::bias_act::bias_lrelu_reference;
-use crate::test_support::{Reseed, normals};
+use crate::test_support::{Reseed, normals, shift_element};
 use burn::module::Param;
 use burn::tensor::{DType, Gradients, TensorData};
 use volux_envmap::random::SplitMix64;
@@ -307,11 +307,7 @@ fn check_r1_element<const D: usize>(
     let analytic = to_f64_vec(pick(&mut d).val().grad(grads).unwrap())[index];
     let penalty_shifted = |delta: f64| {
         let mut d = d.clone();
-        let p = pick(&mut d);
-        let t = p.val();
-        let mut v = to_f64_vec(t.clone());
-        v[index] += delta;
-        *p = Param::from_tensor(tensor(v, t.dims(), &t.device(), DType::F64));
+        shift_element(pick(&mut d), index, delta);
         to_f64_vec(r1_penalty(&d, x.clone(), gamma).1)[0]
     };
     let fd = (penalty_shifted(h) - penalty_shifted(-h)) / (2.0 * h);

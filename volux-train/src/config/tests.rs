@@ -12,6 +12,11 @@ resolution = 64
 volume_resolution = 32
 "#;
 
+/// [`TINY`] with `keys` (TOML lines) added to its `[model]` table.
+fn with_model(keys: &str) -> String {
+    TINY.replace("\"small\"", &format!("\"small\"\n{keys}"))
+}
+
 fn load(text: &str) -> Result<TrainConfig, String> {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("run.toml");
@@ -38,9 +43,8 @@ fn a_small_config_loads_with_the_paper_defaults() {
 
 #[test]
 fn model_overrides_reach_the_generator() {
-    let text = TINY.replace(
-        "\"small\"",
-        "\"small\"\nstratified = 6\nimportance = 3\nsphere_prior = 10.0\nsphere_radius = 0.35\nfrequencies = 4",
+    let text = with_model(
+        "stratified = 6\nimportance = 3\nsphere_prior = 10.0\nsphere_radius = 0.35\nfrequencies = 4",
     );
     let g = load(&text).unwrap().generator();
     assert_eq!((g.renderer.stratified, g.renderer.importance), (6, 3));
@@ -51,10 +55,7 @@ fn model_overrides_reach_the_generator() {
         (0, 0),
         "EG3D's unless asked"
     );
-    let text = TINY.replace(
-        "\"small\"",
-        "\"small\"\nstratified = 0\nproposal = 32\nrefine = 16\nimportance = 12",
-    );
+    let text = with_model("stratified = 0\nproposal = 32\nrefine = 16\nimportance = 12");
     let c = load(&text).unwrap();
     let r = c.generator().renderer;
     assert_eq!(
@@ -67,7 +68,7 @@ fn model_overrides_reach_the_generator() {
     );
     assert_eq!(g.renderer.shading, Shading::Volume, "volume unless asked");
     for (key, want) in [("volume", Shading::Volume), ("surface", Shading::Surface)] {
-        let text = TINY.replace("\"small\"", &format!("\"small\"\nshading = \"{key}\""));
+        let text = with_model(&format!("shading = \"{key}\""));
         let c = load(&text).unwrap();
         assert_eq!(c.generator().renderer.shading, want);
         // The shading mode is part of what a resumed run must match; writing out the
@@ -88,10 +89,7 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
     assert_eq!(c.generator().mapping.layers, 8, "StyleGAN2's unless asked");
     let d = c.model.discriminator(DiscriminatorRole::Photo).unwrap();
     assert_eq!((d.channel_base, d.channel_max), (2048, 128), "the preset's");
-    let text = TINY.replace(
-        "\"small\"",
-        "\"small\"\nmapping_layers = 2\nd_channel_base = 4096\nd_channel_max = 256",
-    );
+    let text = with_model("mapping_layers = 2\nd_channel_base = 4096\nd_channel_max = 256");
     let c = load(&text).unwrap();
     assert_eq!(c.generator().mapping.layers, 2);
     for role in DiscriminatorRole::ALL {
@@ -118,10 +116,7 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
     // The template planes: none unless asked; they reach the field's first layer and are
     // part of what a resume must match.
     assert_eq!(load(TINY).unwrap().generator().neiif.template_resolution, 0);
-    let text = TINY.replace(
-        "\"small\"",
-        "\"small\"\ntemplate_resolution = 16\ntemplate_channels = 4",
-    );
+    let text = with_model("template_resolution = 16\ntemplate_channels = 4");
     let planes = load(&text).unwrap();
     let g = planes.generator();
     assert_eq!(
@@ -138,10 +133,7 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
         g.neiif.template_bound, 1.0,
         "planes over [-1, 1] unless asked"
     );
-    let text = TINY.replace(
-        "\"small\"",
-        "\"small\"\ntemplate_resolution = 16\ntemplate_bound = 0.6",
-    );
+    let text = with_model("template_resolution = 16\ntemplate_bound = 0.6");
     let narrow = load(&text).unwrap();
     assert_eq!(narrow.generator().neiif.template_bound, 0.6);
     let field = narrow.generator().neiif.init(&burn::tensor::Device::flex());
@@ -155,10 +147,7 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
     // resume must match it.
     assert_eq!(planes.generator().neiif.template_basis, 0);
     assert!(field_of(&planes).template.unwrap().basis.is_none());
-    let text = TINY.replace(
-        "\"small\"",
-        "\"small\"\ntemplate_resolution = 16\ntemplate_channels = 4\ntemplate_basis = 5",
-    );
+    let text = with_model("template_resolution = 16\ntemplate_channels = 4\ntemplate_basis = 5");
     let based = load(&text).unwrap();
     assert_eq!(based.generator().neiif.template_basis, 5);
     let basis = field_of(&based).template.unwrap().basis.unwrap();
@@ -177,7 +166,7 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
     // is the default.
     let paper = load(TINY).unwrap();
     assert_eq!(paper.generator().upsampler_kernel, 1);
-    let spatial = load(&TINY.replace("\"small\"", "\"small\"\nupsampler_kernel = 3")).unwrap();
+    let spatial = load(&with_model("upsampler_kernel = 3")).unwrap();
     assert_eq!(spatial.generator().upsampler_kernel, 3);
     let g = spatial
         .generator()
@@ -197,12 +186,12 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
         paper.shapes(),
         "a resume must match the kernel"
     );
-    let written = load(&TINY.replace("\"small\"", "\"small\"\nupsampler_kernel = 1")).unwrap();
+    let written = load(&with_model("upsampler_kernel = 1")).unwrap();
     assert_eq!(written.shapes(), paper.shapes());
     // The encoding: the paper's unless asked; part of what a resume must match.
     assert!(!load(TINY).unwrap().generator().neiif.rotated_encoding);
     for (key, rotated) in [("axis-aligned", false), ("rotated", true)] {
-        let text = TINY.replace("\"small\"", &format!("\"small\"\nencoding = \"{key}\""));
+        let text = with_model(&format!("encoding = \"{key}\""));
         let c = load(&text).unwrap();
         assert_eq!(c.generator().neiif.rotated_encoding, rotated);
         assert_eq!(c.shapes() == load(TINY).unwrap().shapes(), !rotated);
@@ -234,44 +223,26 @@ fn bad_configs_name_the_file_and_the_key() {
             "train.batch = 1000000000000 must be in 1..=1024",
         ),
         (TINY.replace("\"small\"", "\"huge\""), "model.preset"),
+        (with_model("sphere_radius = 2.0"), "model.sphere_radius"),
+        (with_model("frequencies = 0"), "model.frequencies"),
+        (with_model("shading = \"surfaces\""), "shading"),
+        (with_model("encoding = \"rotate\""), "encoding"),
         (
-            TINY.replace("\"small\"", "\"small\"\nsphere_radius = 2.0"),
-            "model.sphere_radius",
-        ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nfrequencies = 0"),
-            "model.frequencies",
-        ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nshading = \"surfaces\""),
-            "shading",
-        ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nencoding = \"rotate\""),
-            "encoding",
-        ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nvolume_resolution = 128"),
+            with_model("volume_resolution = 128"),
             "model.volume_resolution = 128",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\nvolume_resolution = 48"),
+            with_model("volume_resolution = 48"),
             "output_resolution 64 must be volume_resolution 48 times a power of two",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\nvolume_resolution = 16"),
+            with_model("volume_resolution = 16"),
             "data.volume_resolution = 32 must equal",
         ),
+        (with_model("mapping_layers = 0"), "model.mapping_layers = 0"),
+        (with_model("d_channel_base = 0"), "model.d_channel_base = 0"),
         (
-            TINY.replace("\"small\"", "\"small\"\nmapping_layers = 0"),
-            "model.mapping_layers = 0",
-        ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nd_channel_base = 0"),
-            "model.d_channel_base = 0",
-        ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nd_channel_max = 100000"),
+            with_model("d_channel_max = 100000"),
             "model.d_channel_max = 100000",
         ),
         (
@@ -285,7 +256,7 @@ fn bad_configs_name_the_file_and_the_key() {
             "fade_kimg",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\nfrequencies = 4")
+            with_model("frequencies = 4")
                 + "\n[schedule]\nopen_octaves = 5\noctave_fade_kimg = 1.0\n",
             "schedule.open_octaves = 5",
         ),
@@ -294,45 +265,39 @@ fn bad_configs_name_the_file_and_the_key() {
             "schedule.octave_fade_start_kimg",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\ntemplate_resolution = 1"),
+            with_model("template_resolution = 1"),
             "model.template_resolution = 1",
         ),
         (
-            TINY.replace(
-                "\"small\"",
-                "\"small\"\ntemplate_resolution = 8\ntemplate_channels = 0",
-            ),
+            with_model("template_resolution = 8\ntemplate_channels = 0"),
             "model.template_channels = 0",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\ntemplate_bound = 0.0"),
+            with_model("template_bound = 0.0"),
             "model.template_bound = 0.0",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\ntemplate_bound = nan"),
+            with_model("template_bound = nan"),
             "model.template_bound = NaN",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\ntemplate_bound = 5.0"),
+            with_model("template_bound = 5.0"),
             "model.template_bound = 5.0",
         ),
         (
-            TINY.replace(
-                "\"small\"",
-                "\"small\"\ntemplate_resolution = 8\ntemplate_basis = 65",
-            ),
+            with_model("template_resolution = 8\ntemplate_basis = 65"),
             "model.template_basis = 65",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\ntemplate_basis = 2"),
+            with_model("template_basis = 2"),
             "model.template_basis = 2 needs template planes",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\nupsampler_kernel = 2"),
+            with_model("upsampler_kernel = 2"),
             "model.upsampler_kernel = 2 must be 1 or 3",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\nupsampler_kernel = 5"),
+            with_model("upsampler_kernel = 5"),
             "model.upsampler_kernel = 5",
         ),
         (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
@@ -341,30 +306,21 @@ fn bad_configs_name_the_file_and_the_key() {
             "identity",
         ),
         (TINY.replace("[model]\npreset = \"small\"", ""), "model"),
+        (with_model("refine = 8"), "refine = 8"),
         (
-            TINY.replace("\"small\"", "\"small\"\nrefine = 8"),
-            "refine = 8",
-        ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nproposal = 32\nimportance = 0"),
+            with_model("proposal = 32\nimportance = 0"),
             "importance = 0",
         ),
         (
-            TINY.replace("\"small\"", "\"small\"\nproposal = 32\nimportance = 1"),
+            with_model("proposal = 32\nimportance = 1"),
             "model.importance = 1",
         ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nproposal = 100000"),
-            "model.proposal = 100000",
-        ),
-        (
-            TINY.replace("\"small\"", "\"small\"\nstratified = 0"),
-            "model.stratified = 0",
-        ),
+        (with_model("proposal = 100000"), "model.proposal = 100000"),
+        (with_model("stratified = 0"), "model.stratified = 0"),
         // Values that overflow f32 (every step was skipped as NaN, no cause named), a
         // prefetch that aborted on allocation, and poses that turn the camera over.
         (
-            TINY.replace("\"small\"", "\"small\"\nsphere_prior = 1e308"),
+            with_model("sphere_prior = 1e308"),
             "model.sphere_prior = 1e308 must",
         ),
         (
