@@ -197,6 +197,25 @@ pub fn upsampler(c: &UpsamplerConfig, batch: usize, side: usize) -> f64 {
     total
 }
 
+/// The upsampler's noise inputs ([`crate::upsampler_noise`]) on a batch of `side x side`
+/// inputs, `octaves` per block: each block's gain layer `C -> K C` at its output resolution and
+/// the strengths' and noise's products and sum (`3 K C` per pixel). The noise itself is value
+/// noise drawn on the host, not counted.
+pub fn upsampler_noise(c: &UpsamplerConfig, octaves: usize, batch: usize, side: usize) -> f64 {
+    if octaves == 0 {
+        return 0.0;
+    }
+    let gains = octaves * c.channels;
+    (1..=c.blocks)
+        .map(|i| {
+            let pixels = batch * (side << i) * (side << i);
+            modulation(c.w_dim, c.channels, gains, batch)
+                + matmul(pixels, gains, c.channels)
+                + 3.0 * (pixels * gains) as f64
+        })
+        .sum()
+}
+
 /// The relighting U-Net on a batch of `side x side` inputs (its two 3x3 convolutions per
 /// level, the decoder's bilinear x2, the 1x1 output).
 pub fn relighting(c: &RelightingConfig, batch: usize, side: usize) -> f64 {
@@ -290,17 +309,14 @@ pub fn generator(c: &GeneratorConfig, batch: usize, wants: GeneratorWants) -> Ge
         proposal: proposal(c, batch, rays),
         compositing: compositing(batch, rays, r.stratified, r.importance, channels, lobes),
         upsampler: if upsample {
-            upsampler(
-                &UpsamplerConfig::new(
-                    c.mapping.w_dim,
-                    3 + c.neiif.width,
-                    c.upsampler_channels,
-                    blocks,
-                )
-                .with_kernel(c.upsampler_kernel),
-                batch,
-                side,
+            let u = UpsamplerConfig::new(
+                c.mapping.w_dim,
+                3 + c.neiif.width,
+                c.upsampler_channels,
+                blocks,
             )
+            .with_kernel(c.upsampler_kernel);
+            upsampler(&u, batch, side) + upsampler_noise(&u, c.upsampler_noise, batch, side)
         } else {
             0.0
         },
@@ -467,6 +483,17 @@ mod tests {
         // 3x3: each layer reads 9 taps of every input channel.
         let three = m(45.0, 4.0) + 2.0 * 9.0 * 4.0 * 45.0 + m(36.0, 16.0) + 2.0 * 9.0 * 16.0 * 36.0;
         assert_eq!(upsampler(&c.clone().with_kernel(3), 1, 3), three + rest);
+    }
+
+    #[test]
+    fn upsampler_noise_counts_each_blocks_gain_layer_at_its_output() {
+        // w of 2, 4 channels, 2 octaves, two blocks on a 3x3 input of one element: gains of 8
+        // channels at 6x6 and at 12x12.
+        let c = UpsamplerConfig::new(2, 5, 4, 2);
+        let m = 2.0 * (4.0 * 2.0 + 8.0 * 4.0);
+        let block = |pixels: f64| m + 2.0 * pixels * 8.0 * 4.0 + 3.0 * pixels * 8.0;
+        assert_eq!(upsampler_noise(&c, 2, 1, 3), block(36.0) + block(144.0));
+        assert_eq!(upsampler_noise(&c, 0, 1, 3), 0.0);
     }
 
     #[test]

@@ -21,6 +21,7 @@ use crate::profile::{self, Phase};
 use crate::ray_sampling::{CameraConfig, camera_basis, camera_ray_batch};
 use crate::relighting::{RelightingConfig, RelightingNet};
 use crate::upsampler::{Upsampler, UpsamplerConfig, bilinear_upsample};
+use crate::upsampler_noise;
 use crate::volume_rendering::{RenderOutput, RenderWants, RendererConfig, render};
 
 /// Sizes of every part of a generator.
@@ -40,6 +41,10 @@ pub struct GeneratorConfig {
     /// Side of the upsampler's convolutions: 1 (the paper's) or 3 ([`UpsamplerConfig::kernel`]).
     #[config(default = 1)]
     pub upsampler_kernel: usize,
+    /// Octaves of the upsampler's surface-anchored noise inputs, 0 (the paper's: none) to
+    /// [`crate::upsampler_noise::MAX_OCTAVES`].
+    #[config(default = 0)]
+    pub upsampler_noise: usize,
 }
 
 /// Why a generator cannot be built or run.
@@ -59,6 +64,8 @@ pub enum GeneratorError {
     },
     #[error("upsampler_kernel {0} must be 1 or 3")]
     UpsamplerKernel(usize),
+    #[error("upsampler_noise {0} must be at most {max} octaves", max = crate::upsampler_noise::MAX_OCTAVES)]
+    UpsamplerNoise(usize),
     #[error("renderer samples")]
     Samples(#[from] crate::volume_rendering::SamplesError),
     #[error("{what} needs lighting (light maps and yaw per batch element)")]
@@ -128,6 +135,9 @@ impl GeneratorConfig {
         if !crate::upsampler::KERNELS.contains(&self.upsampler_kernel) {
             return Err(GeneratorError::UpsamplerKernel(self.upsampler_kernel));
         }
+        if self.upsampler_noise > crate::upsampler_noise::MAX_OCTAVES {
+            return Err(GeneratorError::UpsamplerNoise(self.upsampler_noise));
+        }
         let levels = self.relighting_channels.len();
         let divisor = 1 << levels.saturating_sub(1);
         if levels == 0 || o % divisor != 0 {
@@ -158,8 +168,12 @@ impl GeneratorConfig {
         let relighting = RelightingConfig::new(upsampler_config.output_channels() - 3)
             .with_channels(self.relighting_channels.clone())
             .init(device);
+        let mapping = self.mapping.init(device);
+        // Options drawn after the paper's networks, so that turning one on leaves every other
+        // initial weight as it was.
+        let upsampler = upsampler.with_noise(self.upsampler_noise, self.mapping.w_dim, device);
         Ok(Generator {
-            mapping: self.mapping.init(device),
+            mapping,
             neiif,
             upsampler,
             relighting,
@@ -300,20 +314,30 @@ impl Generator {
                 lighting: lighting.map_or(0, |l| l.maps[0].batch()),
             });
         }
+        let z_host = (wants.needs_upsampler() && self.upsampler.noise_octaves() > 0)
+            .then(|| z.clone().detach());
         let w = profile::timed(Phase::Mapping, || self.mapping.forward(z));
         let side = self.volume_resolution;
         let up = wants.needs_upsampler();
+        let noised = up && self.upsampler.noise_octaves() > 0;
         let render_wants = RenderWants {
             albedo: wants.albedo_lo || up,
             normals: wants.normals_lo,
             shading: wants.needs_shading(),
             features: wants.features_lo || up,
-            depth: wants.depth,
+            depth: wants.depth || noised,
         };
         // The renderer's own work; the field's queries inside it are timed as their own phase.
         let compositing = profile::span(Phase::Compositing);
         let (origins, dirs) = camera_ray_batch(&self.renderer.camera, poses, side, side, &device);
-        let r = self.render_rays(w.clone(), origins, dirs, lighting, render_wants, jitter)?;
+        let r = self.render_rays(
+            w.clone(),
+            origins.clone(),
+            dirs.clone(),
+            lighting,
+            render_wants,
+            jitter,
+        )?;
         let opacity = r.opacity.clone().reshape([b, 1, side, side]);
         let bg = Tensor::<1>::from_floats(background.as_slice(), &device).reshape([1, 3, 1, 1]);
         let clear = opacity.clone().neg().add_scalar(1.0);
@@ -327,6 +351,14 @@ impl Generator {
                 side,
             )
         });
+        let noise = match (&r.depth, noised) {
+            (Some(depth), true) => {
+                let seeds = upsampler_noise::latent_seeds(z_host.expect("kept for the noise"));
+                let points = origins + dirs * depth.clone().detach().unsqueeze_dim::<3>(2);
+                self.noise_images(image(points, side), opacity.clone().detach(), &seeds)
+            }
+            _ => Vec::new(),
+        };
         let depth = r.depth.map(|d| d.reshape([b, 1, side, side]));
         drop(compositing);
         let (mut albedo_hi, mut relit) = (None, None);
@@ -339,7 +371,7 @@ impl Generator {
                 1,
             );
             let hi = profile::timed(Phase::Upsampler, || {
-                self.upsampler.forward(x, w.clone(), fade)
+                self.upsampler.forward_noised(x, w.clone(), fade, &noise)
             });
             let c = hi.dims()[1];
             let a_hi = hi.clone().narrow(1, 0, 3);
@@ -371,6 +403,24 @@ impl Generator {
             opacity,
             layers: layers.wanted(wants),
         })
+    }
+
+    /// Each upsampler block's noise images `[batch, octaves, h, w]` from the surface points
+    /// `[batch, 3, side, side]` the volume's pixels see and their opacity `[batch, 1, side,
+    /// side]`, both enlarged bilinearly to the block's resolution: the noise on the surface,
+    /// faded out where the ray sees less of it, none on the background
+    /// ([`crate::upsampler_noise`]).
+    fn noise_images(&self, points: Tensor<4>, opacity: Tensor<4>, seeds: &[u64]) -> Vec<Tensor<4>> {
+        let octaves = self.upsampler.noise_octaves();
+        (1..=self.upsampler.blocks.len())
+            .map(|i| {
+                let at = bilinear_upsample(points.clone(), 1 << i);
+                let resolution = self.volume_resolution << i;
+                let spacing = upsampler_noise::pixel_footprint(&self.renderer.camera, resolution);
+                upsampler_noise::noise_images(at, seeds, spacing, octaves)
+                    * bilinear_upsample(opacity.clone(), 1 << i)
+            })
+            .collect()
     }
 
     /// Parameter counts of each part, in the order mapping, NeIIF, upsampler, relighting.

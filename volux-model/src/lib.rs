@@ -49,4 +49,6 @@ pub mod template_planes;
 mod test_support;
 pub mod unet;
 pub mod upsampler;
+pub mod upsampler_noise;
+pub mod value_noise;
 pub mod volume_rendering;

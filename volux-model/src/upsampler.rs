@@ -27,6 +27,7 @@ use burn::tensor::{Device, Tensor};
 use crate::fir_filter::{Fir, fir2d, fir2d_adjoint};
 use crate::fused_activation;
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
+use crate::upsampler_noise::NoiseInjection;
 
 /// Configuration of an [`Upsampler`].
 #[derive(Config, Debug)]
@@ -50,6 +51,8 @@ pub struct UpsampleBlock {
     pub conv1: ModulatedLinear,
     pub conv2: ModulatedLinear,
     pub shuffle: PixelShuffle,
+    /// Surface-anchored noise added to the block's output (`None`: the paper's block).
+    pub noise: Option<NoiseInjection>,
 }
 
 /// The upsampler.
@@ -99,6 +102,7 @@ impl UpsamplerConfig {
                     )
                     .init(device),
                     shuffle: PixelShuffleConfig::new(2).init(),
+                    noise: None,
                 }
             })
             .collect();
@@ -144,7 +148,7 @@ pub fn neighbourhoods(x: Tensor<4>, kernel: usize) -> Tensor<4> {
 }
 
 /// `f` applied to `x: [batch, c, h, w]` as `[batch, h w, c]` pixels, back to `[batch, o, h, w]`.
-fn per_pixel(x: Tensor<4>, f: impl FnOnce(Tensor<3>) -> Tensor<3>) -> Tensor<4> {
+pub(crate) fn per_pixel(x: Tensor<4>, f: impl FnOnce(Tensor<3>) -> Tensor<3>) -> Tensor<4> {
     let [b, c, h, wd] = x.dims();
     let y = f(x.reshape([b, c, h * wd]).swap_dims(1, 2));
     let o = y.dims()[2];
@@ -233,6 +237,19 @@ impl Upsampler {
     /// weight per block in [0, 1] (`None`: all 1) -> `[batch, channels, h f, w f]` whose first
     /// three channels are the high-resolution albedo.
     pub fn forward(&self, x: Tensor<4>, w: Tensor<2>, fade: Option<&[f64]>) -> Tensor<4> {
+        self.forward_noised(x, w, fade, &[])
+    }
+
+    /// [`Self::forward`] with each block's noise images `[batch, octaves, h, w]` at its output
+    /// resolution ([`crate::upsampler_noise`]); a block without an image here, or without a
+    /// noise input, adds none.
+    pub fn forward_noised(
+        &self,
+        x: Tensor<4>,
+        w: Tensor<2>,
+        fade: Option<&[f64]>,
+        noise: &[Tensor<4>],
+    ) -> Tensor<4> {
         if let Some(f) = fade {
             assert_eq!(f.len(), self.blocks.len(), "one fade-in weight per block");
         }
@@ -242,12 +259,35 @@ impl Upsampler {
             let k = block.kernel();
             let h = conv_activated(&block.conv1, x, w.clone(), k);
             let y = blur_stride1(block.shuffle.forward(conv(&block.conv2, h, w.clone(), k)));
+            let y = match (&block.noise, noise.get(i)) {
+                (Some(injection), Some(n)) => injection.forward(y, w.clone(), n.clone()),
+                _ => y,
+            };
             let c = y.dims()[1];
             let alpha = fade.map_or(1.0, |f| f[i]);
             let residual = y.clone().narrow(1, 0, 3).mul_scalar(alpha);
             x = Tensor::cat(vec![albedo + residual, y.narrow(1, 3, c - 3)], 1);
         }
         x
+    }
+
+    /// Octaves of the blocks' noise inputs (0: none).
+    pub fn noise_octaves(&self) -> usize {
+        self.blocks
+            .first()
+            .and_then(|b| b.noise.as_ref())
+            .map_or(0, NoiseInjection::octaves)
+    }
+
+    /// Gives every block a noise input of `octaves` octaves, zero strength
+    /// ([`crate::upsampler_noise`]); 0 removes them.
+    pub fn with_noise(mut self, octaves: usize, w_dim: usize, device: &Device) -> Self {
+        for block in &mut self.blocks {
+            let channels = block.conv2.d_output() / 4;
+            block.noise =
+                (octaves > 0).then(|| NoiseInjection::new(w_dim, channels, octaves, device));
+        }
+        self
     }
 
     /// Number of scalar parameters.

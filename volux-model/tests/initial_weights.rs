@@ -15,7 +15,7 @@ use volux_model::upsampler::UpsamplerConfig;
 fn the_networks_draw_their_initial_weights_in_a_fixed_order() {
     // A training run is a pure function of its seed, and the documented A/Bs compare runs
     // bit for bit: reordering the draws changes every initial weight. The order is NeIIF,
-    // upsampler, relighting network, mapping network.
+    // upsampler, relighting network, mapping network, then the options (the upsampler's noise).
     let device = Device::flex();
     let config = GeneratorConfig::small();
     device.seed(5);
@@ -56,5 +56,34 @@ fn the_networks_draw_their_initial_weights_in_a_fixed_order() {
         weights(g.mapping.layers[0].weight.val()),
         weights(mapping.layers[0].weight.val()),
         "mapping",
+    );
+    // The upsampler's noise inputs draw after all four: turning them on moves no other
+    // initial weight.
+    device.seed(5);
+    let noised = config
+        .clone()
+        .with_upsampler_noise(2)
+        .init(&device)
+        .unwrap();
+    assert_eq!(noised.upsampler.noise_octaves(), 2);
+    same(
+        weights(noised.neiif.layers[0].weight.val()),
+        weights(g.neiif.layers[0].weight.val()),
+        "NeIIF (with noise)",
+    );
+    same(
+        weights(noised.upsampler.blocks[0].conv2.weight.val()),
+        weights(g.upsampler.blocks[0].conv2.weight.val()),
+        "upsampler (with noise)",
+    );
+    same(
+        to_f32_vec(noised.relighting.out.weight.val()),
+        to_f32_vec(g.relighting.out.weight.val()),
+        "relighting network (with noise)",
+    );
+    same(
+        weights(noised.mapping.layers[7].weight.val()),
+        weights(g.mapping.layers[7].weight.val()),
+        "mapping (with noise)",
     );
 }

@@ -155,6 +155,10 @@ pub struct ModelConfig {
     /// or 3 (each pixel also reads its neighbours: detail finer than the volume's rays).
     #[serde(default)]
     pub upsampler_kernel: Option<usize>,
+    /// Octaves of surface-anchored noise each upsampler block adds (0, the paper's, to 4; the
+    /// default 0): texture finer than the volume's rays that stays on the head as it turns.
+    #[serde(default)]
+    pub upsampler_noise: Option<usize>,
 }
 
 /// The `[model] encoding` key.
@@ -300,6 +304,15 @@ impl ModelConfig {
                 return Err(format!("model.upsampler_kernel = {k} must be 1 or 3"));
             }
             g.upsampler_kernel = k;
+        }
+        if let Some(k) = self.upsampler_noise {
+            let max = volux_model::upsampler_noise::MAX_OCTAVES;
+            if k > max {
+                return Err(format!(
+                    "model.upsampler_noise = {k} must be at most {max} octaves"
+                ));
+            }
+            g.upsampler_noise = k;
         }
         if let Some(n) = self.mapping_layers {
             if !(1..=MAX_MAPPING_LAYERS).contains(&n) {
@@ -669,11 +682,14 @@ impl TrainConfig {
     }
 
     pub fn shapes(&self) -> String {
-        // `shading = "volume"`, `encoding = "axis-aligned"` and `upsampler_kernel = 1` are the
-        // defaults written out: the same model as no key.
+        // `shading = "volume"`, `encoding = "axis-aligned"`, `upsampler_kernel = 1` and
+        // `upsampler_noise = 0` are the defaults written out: the same model as no key.
         let mut model = self.model.clone();
         if model.upsampler_kernel == Some(1) {
             model.upsampler_kernel = None;
+        }
+        if model.upsampler_noise == Some(0) {
+            model.upsampler_noise = None;
         }
         if model.shading == Some(ShadingKind::Volume) {
             model.shading = None;

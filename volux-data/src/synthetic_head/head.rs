@@ -4,9 +4,9 @@
 //! surface point.
 
 use super::identity::HeadIdentity;
-use super::noise::fbm;
 use super::scalar::{Dual, Scalar};
 use super::sdf::{V3, capsule, ellipsoid, min, offset, plane, smax, smin, sphere};
+use volux_model::value_noise::fbm;
 
 /// Everything in the head lies inside this sphere about the origin (the neck is cut by it).
 pub const BOUNDING_RADIUS: f64 = 0.95;

@@ -13,7 +13,6 @@
 
 pub mod head;
 pub mod identity;
-pub mod noise;
 pub mod photo;
 pub mod render;
 pub mod scalar;

@@ -369,3 +369,129 @@ fn normals_go_to_camera_space() {
         assert!((g - w).abs() < 1e-6, "{cam:?}");
     }
 }
+
+/// The upsampler's surface-anchored noise: a fresh noise input adds nothing; with strength it
+/// changes the high-resolution albedo alone, the same way for the same latent, and its gains
+/// and strengths are in the backward pass.
+#[test]
+fn upsampler_noise_changes_only_the_high_resolution_albedo() {
+    let device = Device::flex().autodiff();
+    let plain = GeneratorConfig::small().init(&device).unwrap();
+    let mut noised = plain.clone();
+    noised.upsampler = noised.upsampler.with_noise(2, 128, &device);
+    assert_eq!(noised.upsampler.noise_octaves(), 2);
+    let z = Tensor::<2>::random([2, 128], Distribution::Normal(0.0, 1.0), &device);
+    let poses = [Pose::new(0.0, 0.0), Pose::new(0.4, -0.1)];
+    let run = |g: &Generator, z: Tensor<2>| {
+        g.forward(
+            z,
+            &poses,
+            None,
+            [1.0; 3],
+            GeneratorWants::STAGE1,
+            None,
+            false,
+        )
+        .unwrap()
+    };
+    let values = |t: Option<Tensor<4>>| to_f32_vec(t.unwrap());
+    let base = run(&plain, z.clone());
+    let fresh = run(&noised, z.clone());
+    assert!(
+        fresh.layers.depth.is_none(),
+        "depth is drawn for the noise, not returned"
+    );
+    assert_eq!(
+        values(base.layers.albedo_hi.clone()),
+        values(fresh.layers.albedo_hi),
+        "zero strength adds nothing"
+    );
+    for block in &mut noised.upsampler.blocks {
+        let injection = block.noise.as_mut().unwrap();
+        let k = injection.strength.dims()[0];
+        injection.strength =
+            burn::module::Param::from_tensor(Tensor::<1>::ones([k], &device).mul_scalar(0.5));
+    }
+    let out = run(&noised, z.clone());
+    assert_eq!(
+        values(base.layers.albedo_lo),
+        values(out.layers.albedo_lo.clone()),
+        "the volume does not see the noise"
+    );
+    let (a, b) = (
+        values(base.layers.albedo_hi),
+        values(out.layers.albedo_hi.clone()),
+    );
+    let moved = a
+        .iter()
+        .zip(&b)
+        .filter(|(x, y)| (*x - *y).abs() > 1e-4)
+        .count();
+    assert!(
+        moved > a.len() / 2,
+        "noise reaches most pixels ({moved} of {})",
+        a.len()
+    );
+    assert_eq!(
+        b,
+        values(run(&noised, z.clone()).layers.albedo_hi),
+        "the same latent draws the same noise"
+    );
+    let swapped = Tensor::cat(vec![z.clone().narrow(0, 1, 1), z.narrow(0, 0, 1)], 0);
+    assert_ne!(b, values(run(&noised, swapped).layers.albedo_hi));
+    let grads = out
+        .layers
+        .albedo_hi
+        .unwrap()
+        .powf_scalar(2.0)
+        .mean()
+        .backward();
+    let injection = noised.upsampler.blocks[0].noise.as_ref().unwrap();
+    for (what, grad) in [
+        (
+            "strength",
+            injection.strength.val().grad(&grads).map(to_f32_vec),
+        ),
+        (
+            "gain",
+            injection.gain.weight.val().grad(&grads).map(to_f32_vec),
+        ),
+    ] {
+        let grad = grad.unwrap_or_else(|| panic!("no gradient reached the noise's {what}"));
+        assert!(
+            grad.iter().all(|v| v.is_finite()) && grad.iter().any(|v| *v != 0.0),
+            "{what}"
+        );
+    }
+}
+
+/// The noise images lie on the surface: times the opacity, enlarged to each block; none where
+/// a ray sees nothing.
+#[test]
+fn upsampler_noise_is_weighted_by_the_opacity() {
+    let device = Device::flex();
+    let mut g = GeneratorConfig::small().init(&device).unwrap();
+    g.upsampler = g.upsampler.with_noise(2, 128, &device);
+    let points = Tensor::<4>::random([2, 3, 32, 32], Distribution::Normal(0.0, 0.3), &device);
+    let seeds = [3, 4];
+    let spacing = upsampler_noise::pixel_footprint(&g.renderer.camera, 64);
+    let plain = to_f32_vec(upsampler_noise::noise_images(
+        bilinear_upsample(points.clone(), 2),
+        &seeds,
+        spacing,
+        2,
+    ));
+    let ones = Tensor::<4>::ones([2, 1, 32, 32], &device);
+    let full = g.noise_images(points.clone(), ones.clone(), &seeds);
+    assert_eq!(full.len(), 1);
+    assert_eq!(full[0].dims(), [2, 2, 64, 64]);
+    assert_eq!(to_f32_vec(full[0].clone()), plain);
+    let empty = g.noise_images(points.clone(), ones.clone().mul_scalar(0.0), &seeds);
+    assert!(to_f32_vec(empty[0].clone()).iter().all(|v| *v == 0.0));
+    let half = to_f32_vec(g.noise_images(points, ones.mul_scalar(0.5), &seeds)[0].clone());
+    assert!(
+        half.iter()
+            .zip(&plain)
+            .all(|(h, p)| (h - 0.5 * p).abs() < 1e-7)
+    );
+}

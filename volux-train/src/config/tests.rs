@@ -188,6 +188,28 @@ fn mapping_depth_and_discriminator_width_reach_the_networks() {
     );
     let written = load(&with_model("upsampler_kernel = 1")).unwrap();
     assert_eq!(written.shapes(), paper.shapes());
+    // The upsampler's noise: none unless asked; 2 octaves give every block a gain layer to
+    // 2 C gains, part of what a resume must match; 0 written out is the default.
+    assert_eq!(paper.generator().upsampler_noise, 0);
+    let noised = load(&with_model("upsampler_noise = 2")).unwrap();
+    let g = noised
+        .generator()
+        .init(&burn::tensor::Device::flex())
+        .unwrap();
+    assert_eq!(g.upsampler.noise_octaves(), 2);
+    let channels = noised.generator().upsampler_channels;
+    assert!(g.upsampler.blocks.iter().all(|b| {
+        b.noise
+            .as_ref()
+            .is_some_and(|n| n.gain.weight.dims() == [2 * channels, channels])
+    }));
+    assert_ne!(
+        noised.shapes(),
+        paper.shapes(),
+        "a resume must match the noise"
+    );
+    let written = load(&with_model("upsampler_noise = 0")).unwrap();
+    assert_eq!(written.shapes(), paper.shapes());
     // The encoding: the paper's unless asked; part of what a resume must match.
     assert!(!load(TINY).unwrap().generator().neiif.rotated_encoding);
     for (key, rotated) in [("axis-aligned", false), ("rotated", true)] {
@@ -299,6 +321,10 @@ fn bad_configs_name_the_file_and_the_key() {
         (
             with_model("upsampler_kernel = 5"),
             "model.upsampler_kernel = 5",
+        ),
+        (
+            with_model("upsampler_noise = 5"),
+            "model.upsampler_noise = 5 must be at most 4 octaves",
         ),
         (format!("{TINY}\n[output]\nkeep = 0\n"), "output.keep"),
         (

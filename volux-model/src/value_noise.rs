@@ -1,4 +1,6 @@
-//! Seeded 3D value noise for skin and hair texture: smooth, deterministic, in `[-1, 1]`.
+//! Seeded 3D value noise: smooth, deterministic, in `[-1, 1]`. One home for two users: the
+//! synthetic heads' skin and hair texture (volux-data) and the upsampler's surface-anchored
+//! noise inputs ([`crate::upsampler_noise`]).
 
 /// A lattice hash of integer coordinates and a seed, in `[-1, 1]`.
 fn lattice(seed: u64, x: i64, y: i64, z: i64) -> f64 {
