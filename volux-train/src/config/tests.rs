@@ -401,10 +401,15 @@ fn bad_configs_name_the_file_and_the_key() {
 #[test]
 fn the_resolved_config_fills_in_every_default_and_loads_back_the_same() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs");
-    let mut configs: Vec<TrainConfig> = ["quickstart.toml", "synthetic2h.toml", "synthetic64.toml"]
-        .iter()
-        .map(|name| TrainConfig::load(&root.join(name)).unwrap())
-        .collect();
+    let mut configs: Vec<TrainConfig> = [
+        "quickstart.toml",
+        "synthetic2h.toml",
+        "synthetic-volume64.toml",
+        "synthetic64.toml",
+    ]
+    .iter()
+    .map(|name| TrainConfig::load(&root.join(name)).unwrap())
+    .collect();
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("run.toml");
     configs.push(TrainConfig::from_text(TINY.to_string(), &path).unwrap());
