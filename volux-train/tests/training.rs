@@ -310,6 +310,7 @@ fn every_shipped_config_loads() {
             "celeba128",
             "ffhq256",
             "quickstart",
+            "synthetic-volume64",
             "synthetic2h",
             "synthetic64"
         ]
