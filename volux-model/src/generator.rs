@@ -314,12 +314,12 @@ impl Generator {
                 lighting: lighting.map_or(0, |l| l.maps[0].batch()),
             });
         }
-        let z_host = (wants.needs_upsampler() && self.upsampler.noise_octaves() > 0)
-            .then(|| z.clone().detach());
-        let w = profile::timed(Phase::Mapping, || self.mapping.forward(z));
-        let side = self.volume_resolution;
         let up = wants.needs_upsampler();
         let noised = up && self.upsampler.noise_octaves() > 0;
+        // The noise's seeds hash the latents themselves.
+        let z_noise = noised.then(|| z.clone().detach());
+        let w = profile::timed(Phase::Mapping, || self.mapping.forward(z));
+        let side = self.volume_resolution;
         let render_wants = RenderWants {
             albedo: wants.albedo_lo || up,
             normals: wants.normals_lo,
@@ -351,9 +351,9 @@ impl Generator {
                 side,
             )
         });
-        let noise = match (&r.depth, noised) {
-            (Some(depth), true) => {
-                let seeds = upsampler_noise::latent_seeds(z_host.expect("kept for the noise"));
+        let noise = match (&r.depth, z_noise) {
+            (Some(depth), Some(z)) => {
+                let seeds = upsampler_noise::latent_seeds(z);
                 let points = origins + dirs * depth.clone().detach().unsqueeze_dim::<3>(2);
                 self.noise_images(image(points, side), opacity.clone().detach(), &seeds)
             }

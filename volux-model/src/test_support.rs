@@ -45,6 +45,15 @@ impl ModuleMapper for Reseed {
     }
 }
 
+/// `values` as an f64 tensor of `shape` on `device` (the inputs of f64 reference checks).
+pub fn f64_tensor<const D: usize>(
+    values: Vec<f64>,
+    shape: [usize; D],
+    device: &burn::tensor::Device,
+) -> Tensor<D> {
+    Tensor::from_data(TensorData::new(values, shape), (device, DType::F64))
+}
+
 /// Moves element `index` of parameter `p` by `delta` (in f64, stored back in the parameter's
 /// dtype on its device): one side of a central difference in a network's weight.
 pub fn shift_element<const D: usize>(p: &mut Param<Tensor<D>>, index: usize, delta: f64) {

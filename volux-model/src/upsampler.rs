@@ -301,7 +301,7 @@ mod tests {
     use super::*;
     use crate::backend::{to_f32_vec, to_f64_vec};
     use crate::modulated::DEMOD_EPS;
-    use crate::test_support::{normals, shift_element};
+    use crate::test_support::{f64_tensor, normals, shift_element};
     use burn::module::{Module, Param};
     use burn::tensor::{DType, Distribution, TensorData};
     use volux_envmap::random::SplitMix64;
@@ -363,15 +363,6 @@ mod tests {
             let diff: f32 = (bilinear_upsample(x, f) - want).abs().max().into_scalar();
             assert!(diff < 1e-5, "factor {f}: {diff}");
         }
-    }
-
-    /// `values` as an f64 tensor of `shape` on `device`.
-    fn f64_tensor<const D: usize>(
-        values: Vec<f64>,
-        shape: [usize; D],
-        device: &Device,
-    ) -> Tensor<D> {
-        Tensor::from_data(TensorData::new(values, shape), (device, DType::F64))
     }
 
     #[test]

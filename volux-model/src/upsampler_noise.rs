@@ -25,7 +25,7 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData};
 use volux_envmap::random::{GOLDEN_GAMMA, SplitMix64, mix};
 
-use crate::backend::to_f64_vec;
+use crate::backend::{to_f32_vec, to_f64_vec};
 use crate::modulated::{ModulatedLinear, ModulatedLinearConfig};
 use crate::ray_sampling::CameraConfig;
 use crate::value_noise::value_noise;
@@ -80,9 +80,9 @@ impl NoiseInjection {
 /// a latent keeps its noise in every view and every run, and two latents differ.
 pub fn latent_seeds(z: Tensor<2>) -> Vec<u64> {
     let [b, d] = z.dims();
-    let bits: Vec<u64> = to_f64_vec(z)
+    let bits: Vec<u64> = to_f32_vec(z)
         .into_iter()
-        .map(|v| u64::from((v as f32).to_bits()))
+        .map(|v| u64::from(v.to_bits()))
         .collect();
     (0..b)
         .map(|i| {
@@ -132,18 +132,9 @@ pub fn noise_images(points: Tensor<4>, seeds: &[u64], spacing: f64, octaves: usi
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::backend::to_f32_vec;
     use crate::modulated::DEMOD_EPS;
-    use crate::test_support::{Reseed, normals, shift_element};
+    use crate::test_support::{Reseed, f64_tensor, normals, shift_element};
     use burn::tensor::{DType, Distribution};
-
-    fn f64_tensor<const D: usize>(
-        values: Vec<f64>,
-        shape: [usize; D],
-        device: &Device,
-    ) -> Tensor<D> {
-        Tensor::from_data(TensorData::new(values, shape), (device, DType::F64))
-    }
 
     #[test]
     fn noise_images_are_value_noise_at_each_pixels_point() {
